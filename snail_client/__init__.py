@@ -1,0 +1,1 @@
+"""snail client role."""

@@ -1,0 +1,1 @@
+"""Shared library of snail: circuits, arithmetic, garbling, localization, networking."""

@@ -1,0 +1,1 @@
+"""snail-bench: gate counts, compiler and engine throughput, Bristol runs."""

@@ -1,0 +1,86 @@
+"""snail-bench: measure what the budgets and targets in DESIGN.md talk about."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import click
+import numpy as np
+
+from snail_common.circuit import evaluate_bits, schedule_circuit
+from snail_common.circuit.bristol import BristolError, load_bristol
+
+
+def _parse_int(text: str) -> int:
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise click.BadParameter(f"{text!r} is not an integer (decimal or 0x-hex)") from None
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def main() -> None:
+    """Benchmarks and gate counts of snail's circuits and engines."""
+
+
+@main.command()
+@click.argument("file", type=click.Path(exists=True, dir_okay=False))
+@click.option("--input", "inputs", multiple=True, required=True, metavar="INT",
+              help="One input value of the file, in order: an integer (decimal or 0x-hex) "
+                   "whose bit i is the value's wire i. Repeat once per input value.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def bristol(file: str, inputs: tuple[str, ...], as_json: bool) -> None:
+    """Run a Bristol Fashion circuit FILE in the clear and print its outputs."""
+    try:
+        circuit = load_bristol(file)
+    except BristolError as e:
+        raise click.UsageError(f"{file}: {e}") from None
+    if len(inputs) != len(circuit.inputs):
+        raise click.UsageError(f"{file} takes {len(circuit.inputs)} --input values, "
+                               f"got {len(inputs)}")
+    bits = []
+    for group, text in zip(circuit.inputs, inputs):
+        value = _parse_int(text)
+        if value < 0:
+            value &= (1 << group.bits) - 1  # two's complement
+        if value >> group.bits:
+            raise click.UsageError(f"--input {text} does not fit in {group.bits} bits")
+        bits.extend((value >> i) & 1 for i in range(group.bits))
+    out_bits = evaluate_bits(schedule_circuit(circuit), np.array([bits], bool))[0]
+    outputs, pos = [], 0
+    for group in circuit.output_groups:
+        chunk = out_bits[pos : pos + group.bits]
+        pos += group.bits
+        outputs.append(sum(1 << i for i, bit in enumerate(chunk) if bit))
+    counts = circuit.counts()
+    result = {"outputs": outputs, **counts, "depth": circuit.depth(), "garbled": False}
+    if as_json:
+        click.echo(json.dumps({"bristol": result}))
+    else:
+        click.echo(" ".join(str(v) for v in outputs))
+        click.echo(f"AND {counts['and']}  XOR {counts['xor']}  NOT {counts['not']}  "
+                   f"depth {circuit.depth()}", err=True)
+
+
+@main.command()
+@click.option("--gates", default=50_000_000, show_default=True,
+              help="Approximate size of the generated circuit.")
+@click.option("--lane-words", default=1, show_default=True,
+              help="64-bit words of input vectors per wire in the cleartext run.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def compiler(gates: int, lane_words: int, as_json: bool) -> None:
+    """Build, schedule and evaluate a wide circuit of about --gates gates (foundation targets:
+    <= 30 s and <= 3 GB for 50 M gates; >= 100 M gates/s in the clear)."""
+    from .compiler import compiler_report
+
+    report = compiler_report(gates, lane_words)
+    if as_json:
+        click.echo(json.dumps(report))
+    else:
+        for k, v in report["compiler"].items():
+            click.echo(f"{k:>24}: {v}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""snail evaluator role."""

@@ -1,0 +1,1 @@
+"""snail garbler role."""

@@ -1,0 +1,89 @@
+"""Circuit cache: round trip, content hash, rebuild on corruption; bench CLI contract."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from snail_common.bench.cli import main as bench
+from snail_common.circuit import CircuitBuilder, evaluate
+from snail_common.circuit.cache import cache_dir, cached, load
+
+BRISTOL = Path(__file__).resolve().parents[1].parent / "shared" / "circuits" / "bristol"
+
+
+def _adder():
+    b = CircuitBuilder()
+    x = b.input("x", (3,), 8, "uint8")
+    y = b.input("y", (3,), 8, "uint8")
+    carry, out = 0, []
+    for i in range(8):
+        t = b.xor(x[:, i], carry)
+        out.append(b.xor(t, y[:, i]))
+        carry = b.xor(carry, b.and_(t, b.xor(y[:, i], carry)))
+    b.output("s", np.stack(out, axis=1), "uint8")
+    return b.build()
+
+
+def test_cache_round_trip_keeps_function_and_hash(tmp_path):
+    calls = []
+
+    def build():
+        calls.append(1)
+        return _adder()
+
+    c1, _ = cached("adder-v1", build, tmp_path)
+    c2, s2 = cached("adder-v1", build, tmp_path)
+    assert len(calls) == 1
+    assert c1.content_hash() == c2.content_hash()
+    x = np.array([1, 200, 255], np.uint8)
+    y = np.array([2, 100, 1], np.uint8)
+    assert list(evaluate(c2, {"x": x, "y": y}, s2)["s"]) == list(x + y)
+
+
+def test_hash_changes_with_the_netlist():
+    c = _adder()
+    h = c.content_hash()
+    c.a = c.a.copy()
+    c.a[-1] = 2
+    c._hash = None
+    assert c.content_hash() != h
+
+
+def test_corrupt_cache_file_is_detected_and_rebuilt(tmp_path):
+    cached("adder-v1", _adder, tmp_path)
+    path = tmp_path / "adder-v1.npz"
+    with np.load(path) as d:
+        arrays = dict(d)
+    arrays["a"] = arrays["a"].copy()
+    arrays["a"][0] ^= 1
+    np.savez(path, **arrays)
+    try:
+        load(path)
+        raise AssertionError("tampered circuit was accepted")
+    except ValueError as e:
+        assert "hash" in str(e)
+    c, _ = cached("adder-v1", _adder, tmp_path)
+    assert c.content_hash() == _adder().content_hash()
+
+
+def test_cache_dir_env_override(monkeypatch, tmp_path):
+    monkeypatch.setenv("SNAIL_CACHE_DIR", str(tmp_path))
+    assert cache_dir() == tmp_path
+
+
+def test_bench_bristol_json_contract():
+    r = CliRunner().invoke(bench, ["bristol", str(BRISTOL / "mult2_64.txt"), "--input",
+                                   "0xffffffffffffffff", "--input", "3", "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output)["bristol"]
+    assert out["outputs"] == [2, (1 << 64) - 3]
+    assert (out["and"], out["xor"], out["not"], out["garbled"]) == (8128, 19904, 0, False)
+
+
+def test_bench_bristol_bad_input_is_usage_error():
+    r = CliRunner().invoke(bench, ["bristol", str(BRISTOL / "adder64.txt"), "--input", "1",
+                                   "--input", "x1"])
+    assert r.exit_code == 2
+    assert "x1" in r.output
