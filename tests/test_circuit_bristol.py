@@ -1,14 +1,13 @@
 """Every shared Bristol file, in the clear, against a direct computation; export round trip."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_paths import BRISTOL
 
 from snail_common.circuit import evaluate, schedule_circuit
 from snail_common.circuit.bristol import BristolError, dump_bristol, load_bristol, parse_bristol
 
-BRISTOL = Path(__file__).resolve().parents[1].parent / "shared" / "circuits" / "bristol"
 LANES = 300
 rng = np.random.default_rng(2024)
 U = rng.integers(0, 2**64, LANES, dtype=np.uint64)
@@ -129,3 +128,8 @@ def test_export_handles_outputs_that_are_inputs_constants_or_repeats():
 def test_malformed_files_are_rejected_with_a_reason(text, match):
     with pytest.raises(BristolError, match=match):
         parse_bristol(text)
+
+
+def test_shared_folder_is_present():
+    """Fail loudly, rather than skip, when the shared circuits are not where CI puts them."""
+    assert BRISTOL.is_dir(), f"{BRISTOL} missing: set SNAIL_SHARED to the shared folder"

@@ -1,16 +1,14 @@
 """Circuit cache: round trip, content hash, rebuild on corruption; bench CLI contract."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 from click.testing import CliRunner
+from shared_paths import BRISTOL
 
 from snail_common.bench.cli import main as bench
 from snail_common.circuit import CircuitBuilder, evaluate
 from snail_common.circuit.cache import cache_dir, cached, load
-
-BRISTOL = Path(__file__).resolve().parents[1].parent / "shared" / "circuits" / "bristol"
 
 
 def _adder():

@@ -141,12 +141,15 @@ class _Plan(NamedTuple):
 
 def _groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stable sort order of keys and the [start, end) bounds of each run of equal keys."""
-    order = np.argsort(keys, kind="stable")
+    order = np.argsort(keys, kind="stable").astype(np.int32)
     sk = keys[order]
     cuts = np.flatnonzero(sk[1:] != sk[:-1]) + 1
+    del sk
+    if not len(keys):
+        return order, np.zeros(0, np.int64), np.zeros(0, np.int64)
     starts = np.concatenate([[0], cuts]).astype(np.int64)
-    ends = np.concatenate([cuts, [len(sk)]]).astype(np.int64)
-    return order, starts if len(sk) else starts[:0], ends if len(sk) else ends[:0]
+    ends = np.concatenate([cuts, [len(keys)]]).astype(np.int64)
+    return order, starts, ends
 
 
 class _Folder:
@@ -168,9 +171,11 @@ class _Folder:
         self.mat[c.a[is_and]] = True
         self.mat[c.b[is_and]] = True
         self.mat[c.outputs] = True
-        lin_g = np.flatnonzero(~is_and)
-        for ops in (c.a[lin_g], c.b[lin_g]):
-            self.mat[ops[self.depth[ops] < c.and_depth[lin_g]]] = True
+        lin_g = np.flatnonzero(~is_and).astype(np.int32)
+        lin_depth = c.and_depth[lin_g]
+        for ops in (c.a, c.b):
+            ops = ops[lin_g]
+            self.mat[ops[self.depth[ops] < lin_depth]] = True
         self.mat &= self.linear
         self.cut = np.zeros(W, bool)
         self.estart = np.zeros(W, np.int32)
@@ -237,16 +242,21 @@ class _Folder:
 def _fold(c: Circuit, max_terms: int) -> _Plan:
     F = c.first_gate_wire
     is_and = c.kind == AND
-    and_g = np.flatnonzero(is_and)
+    and_g = np.flatnonzero(is_and).astype(np.int32)
     a_order, a_starts, a_ends = _groups(c.and_depth[and_g])
     and_g = and_g[a_order]
+    del a_order
     and_depth_of_group = c.and_depth[and_g[a_starts]] if and_g.size else np.zeros(0, np.int32)
 
-    lin_g = np.flatnonzero(~is_and)
+    lin_g = np.flatnonzero(~is_and).astype(np.int32)
+    del is_and
     xmax = int(c.xor_depth.max(initial=0)) + 1
-    keys = c.and_depth[lin_g].astype(np.int64) * xmax + c.xor_depth[lin_g]
+    key_type = np.int32 if (c.depth() + 1) * xmax < 2**31 else np.int64
+    keys = c.and_depth[lin_g].astype(key_type) * xmax + c.xor_depth[lin_g]
     l_order, l_starts, l_ends = _groups(keys)
+    del keys
     lin_g = lin_g[l_order]
+    del l_order
     lin_layer = c.and_depth[lin_g[l_starts]] if lin_g.size else np.zeros(0, np.int32)
 
     folder = _Folder(c, max_terms)
