@@ -313,37 +313,40 @@ def _allocate_slots(c: Circuit, plan: _Plan, reuse: bool) -> tuple[np.ndarray, i
             n_slots += outs.size
         return slot_of, n_slots
 
-    # last read of every wire: steps run in order, so a plain assignment keeps the latest
-    last = np.full(W, -1, np.int32)
-    for s in range(S):
+    # Reverse scan: the first time a wire is met going backwards is its last read.
+    seen = np.zeros(W, bool)
+    seen[c.outputs] = True  # outputs are never freed
+    marker = np.zeros(W, np.int32)
+    freed_at: list[np.ndarray] = [np.zeros(0, np.int32)] * (S + 1)
+    for s in range(S - 1, -1, -1):
         lo, hi = plan.lo[s], plan.hi[s]
         if plan.kind[s] == AND_STEP:
-            last[plan.and_a[lo:hi]] = s
-            last[plan.and_b[lo:hi]] = s
+            reads = np.concatenate([plan.and_a[lo:hi], plan.and_b[lo:hi]])
         else:
-            last[plan.lin_terms[plan.lin_ptr[lo] : plan.lin_ptr[hi]]] = s
+            reads = plan.lin_terms[plan.lin_ptr[lo] : plan.lin_ptr[hi]]
+        new = reads[~seen[reads]]
+        marker[new] = np.arange(new.size, dtype=np.int32)  # keep one copy of each wire
+        new = new[marker[new] == np.arange(new.size)]
+        seen[new] = True
+        freed_at[s] = new
+    del marker
     # unread wires are freed one step after they are made (unread inputs: at step 0)
-    unread_inputs = np.flatnonzero(last[:F] == -1)
-    last[unread_inputs] = 0
-    for s, outs in enumerate(outs_of):
-        dead = outs[last[outs] == -1]
-        last[dead] = s + 1
-    last[c.outputs] = np.iinfo(np.int32).max
-    freeable = np.flatnonzero(last < S + 1).astype(np.int32)
-    freeable = freeable[np.argsort(last[freeable], kind="stable")]
-    bounds = np.searchsorted(last[freeable], np.arange(S + 1))
+    freed_at[0] = np.concatenate([freed_at[0], np.flatnonzero(~seen[:F]).astype(np.int32)])
 
-    stack = np.empty(freeable.size + 1, np.int32)
+    stack = np.empty(W, np.int32)
     top = 0
     n_slots = F
+    pending = np.zeros(0, np.int32)
     for s, outs in enumerate(outs_of):
-        freed = freeable[bounds[s] : bounds[s + 1]]
-        stack[top : top + freed.size] = slot_of[freed]
-        top += freed.size
+        for freed in (pending, freed_at[s]):
+            stack[top : top + freed.size] = slot_of[freed]
+            top += freed.size
+        freed_at[s] = pending = np.zeros(0, np.int32)
         k = outs.size
         take = min(k, top)
         slot_of[outs[:take]] = stack[top - take : top]
         top -= take
         slot_of[outs[take:]] = np.arange(n_slots, n_slots + k - take, dtype=np.int32)
         n_slots += k - take
+        pending = outs[~seen[outs]]
     return slot_of, n_slots
