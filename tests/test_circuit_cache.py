@@ -85,3 +85,14 @@ def test_bench_bristol_bad_input_is_usage_error():
                                    "--input", "x1"])
     assert r.exit_code == 2
     assert "x1" in r.output
+
+
+def test_bench_bristol_garbled_matches_clear():
+    args = ["bristol", str(BRISTOL / "mult64.txt"), "--input", "123456789", "--input",
+            "0xfedcba987", "--json"]
+    clear = json.loads(CliRunner().invoke(bench, args).output)["bristol"]
+    r = CliRunner().invoke(bench, [*args, "--garbled"])
+    assert r.exit_code == 0, r.output
+    garbled = json.loads(r.output)["bristol"]
+    assert garbled["garbled"] is True
+    assert garbled["outputs"] == clear["outputs"] == [(123456789 * 0xFEDCBA987) % 2**64]

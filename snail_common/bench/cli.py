@@ -29,9 +29,12 @@ def main() -> None:
 @click.option("--input", "inputs", multiple=True, required=True, metavar="INT",
               help="One input value of the file, in order: an integer (decimal or 0x-hex) "
                    "whose bit i is the value's wire i. Repeat once per input value.")
+@click.option("--garbled", is_flag=True,
+              help="Garble and evaluate with half-gates (fresh seed and delta) instead of "
+                   "evaluating in the clear.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def bristol(file: str, inputs: tuple[str, ...], as_json: bool) -> None:
-    """Run a Bristol Fashion circuit FILE in the clear and print its outputs."""
+def bristol(file: str, inputs: tuple[str, ...], garbled: bool, as_json: bool) -> None:
+    """Run a Bristol Fashion circuit FILE and print its outputs."""
     try:
         circuit = load_bristol(file)
     except BristolError as e:
@@ -47,14 +50,20 @@ def bristol(file: str, inputs: tuple[str, ...], as_json: bool) -> None:
         if value >> group.bits:
             raise click.UsageError(f"--input {text} does not fit in {group.bits} bits")
         bits.extend((value >> i) & 1 for i in range(group.bits))
-    out_bits = evaluate_bits(schedule_circuit(circuit), np.array([bits], bool))[0]
+    schedule = schedule_circuit(circuit)
+    if garbled:
+        from snail_common.gc.run import garbled_run
+
+        out_bits = np.asarray(garbled_run(schedule, np.array(bits, bool))).reshape(-1)
+    else:
+        out_bits = evaluate_bits(schedule, np.array([bits], bool))[0]
     outputs, pos = [], 0
     for group in circuit.output_groups:
         chunk = out_bits[pos : pos + group.bits]
         pos += group.bits
         outputs.append(sum(1 << i for i, bit in enumerate(chunk) if bit))
     counts = circuit.counts()
-    result = {"outputs": outputs, **counts, "depth": circuit.depth(), "garbled": False}
+    result = {"outputs": outputs, **counts, "depth": circuit.depth(), "garbled": garbled}
     if as_json:
         click.echo(json.dumps({"bristol": result}))
     else:
@@ -79,6 +88,21 @@ def compiler(gates: int, lane_words: int, as_json: bool) -> None:
         click.echo(json.dumps(report))
     else:
         for k, v in report["compiler"].items():
+            click.echo(f"{k:>24}: {v}")
+
+
+@main.command()
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def engine(as_json: bool) -> None:
+    """Garbling engine: AES rate, garble/evaluate AND gates per second on wide steps,
+    per-step overhead on narrow ones, and a two-process loopback rate."""
+    from .engine import engine_report
+
+    report = engine_report()
+    if as_json:
+        click.echo(json.dumps(report))
+    else:
+        for k, v in report["engine"].items():
             click.echo(f"{k:>24}: {v}")
 
 

@@ -1,0 +1,222 @@
+"""Garbling engine benchmark: the numbers of DESIGN.md section 5, measured on this machine.
+
+- AES: blocks/s of one batched ECB call, the hash's raw material;
+- garble / evaluate: AND gates/s on a wide circuit (independent AND layers of 32 Ki gates
+  with XOR logic between them), in one process each, tables kept in memory;
+- step overhead: time per schedule step on a deep narrow circuit (4 gates per step), the
+  slower of garbler and evaluator (they run in parallel in a real run);
+- plan: one-time preparation of a schedule for the engine (cached per schedule).
+Rates are the best of a few runs (the first pays for page faults and cold caches).
+- end to end: garbler and evaluator in two processes over loopback TCP, frame by frame, so
+  evaluation of frame k overlaps garbling of frame k+1; the result is decoded and checked.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+
+from snail_common.circuit import CircuitBuilder, run_schedule, schedule_circuit
+from snail_common.circuit.schedule import Schedule
+from snail_common.circuit.values import pack_lanes, unpack_lanes
+from snail_common.gc import (
+    Evaluator,
+    Garbler,
+    active_input_labels,
+    decode_output_labels,
+    fresh_delta,
+    fresh_seed,
+)
+from snail_common.gc.aes import AesBatch, byte_view
+from snail_common.gc.plan import plan_for
+
+WIDE_LANES = 1 << 15  # AND steps of 32 Ki and 64 Ki gates
+WIDE_LAYERS = 192  # 6.3 M AND gates
+DEEP_LANES = 4
+DEEP_LAYERS = 1500
+_LEN = struct.Struct("<I")
+
+
+def engine_report(wide_layers: int = WIDE_LAYERS, deep_layers: int = DEEP_LAYERS) -> dict:
+    """Measure AES, garble, evaluate, per-step overhead and end-to-end rates (one run)."""
+    wide = schedule_circuit(_layered_circuit(WIDE_LANES, wide_layers))
+    deep = schedule_circuit(_layered_circuit(DEEP_LANES, deep_layers))
+    t0 = time.perf_counter()
+    plan_for(wide)
+    plan_s = time.perf_counter() - t0
+    # best of a few runs: the first pays for page faults and cold caches
+    garble_s, evaluate_s = _best(_time_in_process(wide) for _ in range(2))
+    deep_garble_s, deep_evaluate_s = _best(_time_in_process(deep) for _ in range(3))
+    e2e_s = min(_time_two_processes(wide) for _ in range(2))
+    return {"engine": {
+        "aes_blocks_per_s": round(_aes_rate()),
+        "garble_and_per_s": round(wide.n_and / garble_s),
+        "evaluate_and_per_s": round(wide.n_and / evaluate_s),
+        "step_overhead_us": round(1e6 * max(deep_garble_s, deep_evaluate_s) / deep.n_steps, 2),
+        "end_to_end_and_per_s": round(wide.n_and / e2e_s),
+        "garble_step_us": round(1e6 * deep_garble_s / deep.n_steps, 2),
+        "evaluate_step_us": round(1e6 * deep_evaluate_s / deep.n_steps, 2),
+        "plan_s": round(plan_s, 3),
+        "wide_and": wide.n_and,
+        "wide_steps": wide.n_steps,
+        "deep_steps": deep.n_steps,
+        "cpus": os.cpu_count(),
+    }}
+
+
+def _best(runs) -> tuple[float, ...]:
+    """Element-wise minimum of timing tuples."""
+    return tuple(float(v) for v in np.min(list(runs), axis=0))
+
+
+def _aes_rate(blocks: int = 1 << 16, seconds: float = 0.3) -> float:
+    aes = AesBatch(os.urandom(16))
+    src = np.zeros((blocks, 2), np.uint64)
+    dst = np.zeros((blocks + 1, 2), np.uint64)
+    sv, dv = byte_view(src), byte_view(dst)
+    aes.encrypt_into(sv, dv)
+    n, t0 = 0, time.perf_counter()
+    while (elapsed := time.perf_counter() - t0) < seconds:
+        aes.encrypt_into(sv, dv)
+        n += blocks
+    return n / elapsed
+
+
+def _layered_circuit(lanes: int, layers: int):
+    """``lanes`` independent chains of ``layers`` AND gates with XOR/NOT logic in between:
+    every AND step is ``lanes`` wide (or 2x when two layers' ANDs share a depth)."""
+    b = CircuitBuilder()
+    x = b.input("x", (lanes, 4), 1)[..., 0]
+    acc = x[:, 0]
+    for i in range(1, layers + 1):
+        u = b.xor(acc, x[:, i % 4])
+        v = b.not_(b.xor(acc, x[:, (i + 1) % 4]))
+        acc = b.and_(u, v)
+        if i % 3 == 0:  # a second operand pattern, so lanes are not all alike
+            acc = b.xor(acc, x[:, (i + 2) % 4])
+    b.output("y", acc[:, None])
+    return b.build()
+
+
+def _inputs(schedule: Schedule, seed: int = 1) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 2, schedule.n_inputs).astype(bool)
+
+
+def _cleartext(schedule: Schedule, bits: np.ndarray) -> np.ndarray:
+    return unpack_lanes(run_schedule(schedule, pack_lanes(bits[:, None])), 1)[:, 0]
+
+
+def _time_in_process(schedule: Schedule) -> tuple[float, float]:
+    """(garble seconds, evaluate seconds) with the frames held in memory; checks the result."""
+    bits = _inputs(schedule)
+    seed, delta = fresh_seed(), fresh_delta()
+    garbler = Garbler(schedule, seed, delta)
+    t0 = time.perf_counter()
+    frames = list(garbler.frames())
+    t1 = time.perf_counter()
+    ev = Evaluator(schedule, active_input_labels(seed, delta, bits))
+    t2 = time.perf_counter()
+    for f in frames:
+        ev.feed(f)
+    t3 = time.perf_counter()
+    out = decode_output_labels(delta, garbler.output_zero_labels, ev.output_labels())
+    if not np.array_equal(out, _cleartext(schedule, bits)):
+        raise AssertionError("garbled run disagrees with the cleartext evaluation")
+    return t1 - t0, t3 - t2
+
+
+def _recv_exact(conn: socket.socket, view: memoryview) -> None:
+    while view:
+        n = conn.recv_into(view)
+        if not n:
+            raise ConnectionError("peer closed the connection mid-frame")
+        view = view[n:]
+
+
+def _sender(conn: socket.socket, frames: queue.Queue) -> None:
+    """Send queued frames, length-prefixed; None ends the stream. Runs in its own thread so
+    the kernel's copies overlap garbling (sendall releases the GIL)."""
+    while (frame := frames.get()) is not None:
+        conn.sendall(_LEN.pack(len(frame)))
+        conn.sendall(frame)
+    conn.sendall(_LEN.pack(0))
+
+
+def _receiver(conn: socket.socket, frames: queue.Queue) -> None:
+    """Receive length-prefixed frames into fresh buffers until the empty frame."""
+    head = bytearray(_LEN.size)
+    while True:
+        _recv_exact(conn, memoryview(head))
+        (size,) = _LEN.unpack(head)
+        if not size:
+            break
+        frame = bytearray(size)
+        _recv_exact(conn, memoryview(frame))
+        frames.put(frame)
+    frames.put(None)
+
+
+def _garbler_proc(schedule, seed, delta, port, results) -> None:
+    garbler = Garbler(schedule, seed, delta)
+    with socket.create_connection(("127.0.0.1", port)) as conn:
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        frames: queue.Queue = queue.Queue(maxsize=4)
+        sender = threading.Thread(target=_sender, args=(conn, frames))
+        results.put(("start", time.monotonic()))
+        sender.start()
+        for frame in garbler.frames():
+            frames.put(frame)
+        frames.put(None)
+        sender.join()
+    results.put(("zero", garbler.output_zero_labels))
+
+
+def _evaluator_proc(schedule, labels, listener, results) -> None:
+    ev = Evaluator(schedule, labels)  # before the clock starts, like the garbler
+    conn, _ = listener.accept()
+    with conn:
+        frames: queue.Queue = queue.Queue(maxsize=8)
+        receiver = threading.Thread(target=_receiver, args=(conn, frames))
+        receiver.start()
+        while (frame := frames.get()) is not None:
+            ev.feed(frame)
+        receiver.join()
+        out = ev.output_labels()
+    results.put(("end", time.monotonic()))
+    results.put(("active", out))
+
+
+def _time_two_processes(schedule: Schedule) -> float:
+    """Seconds from the garbler's first frame to the evaluator's last label, over TCP."""
+    ctx = mp.get_context("fork")  # children share the schedule instead of pickling it
+    bits = _inputs(schedule, 2)
+    seed, delta = fresh_seed(), fresh_delta()
+    labels = active_input_labels(seed, delta, bits)
+    listener = socket.create_server(("127.0.0.1", 0))
+    results = ctx.Queue()
+    procs = [ctx.Process(target=_evaluator_proc, args=(schedule, labels, listener, results)),
+             ctx.Process(target=_garbler_proc,
+                         args=(schedule, seed, delta, listener.getsockname()[1], results))]
+    for p in procs:
+        p.start()
+    got = dict(results.get(timeout=600) for _ in range(4))
+    for p in procs:
+        p.join()
+    listener.close()
+    out = decode_output_labels(delta, got["zero"], got["active"])
+    if not np.array_equal(out, _cleartext(schedule, bits)):
+        raise AssertionError("two-process garbled run disagrees with the cleartext evaluation")
+    return got["end"] - got["start"]
+
+
+if __name__ == "__main__":
+    import json
+
+    print(json.dumps(engine_report(), indent=1))
