@@ -93,6 +93,20 @@ def compiler(gates: int, lane_words: int, as_json: bool) -> None:
 
 @main.command()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def ops(as_json: bool) -> None:
+    """AND, XOR and AND-depth of every arithmetic op (float32 and integer building blocks)."""
+    from .ops import ops_report
+
+    report = ops_report()
+    if as_json:
+        click.echo(json.dumps(report))
+    else:
+        for name, c in report["ops"].items():
+            click.echo(f"{name:>16}: AND {c['and']:>6}  XOR {c['xor']:>6}  depth {c['depth']:>5}")
+
+
+@main.command()
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def engine(as_json: bool) -> None:
     """Garbling engine: AES rate, garble/evaluate AND gates per second on wide steps,
     per-step overhead on narrow ones, and a two-process loopback rate."""

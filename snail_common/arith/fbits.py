@@ -1,0 +1,81 @@
+"""float32 fields and the shared round-and-pack tail of every float op.
+
+Layout of a float32 word (32 wires, LSB first): fraction bits 0..22, exponent 23..30,
+sign 31. Flush-to-zero: an exponent field of 0 means zero whatever the fraction says.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from snail_common.circuit import ONE, ZERO, CircuitBuilder
+
+from .integer import add, increment
+from .words import Word, and_all, cat, const, or_all, wires, zext
+
+FRAC = 23
+BIAS = 127
+
+
+def fields(x: Word) -> tuple[np.ndarray, Word, Word]:
+    """(sign wire, 8-bit exponent word, 23-bit fraction word)."""
+    x = wires(x)
+    return x[..., 31], x[..., 23:31], x[..., :23]
+
+
+def nonzero_exp(b: CircuitBuilder, e: Word) -> np.ndarray:
+    """1 for a normal (or inf/NaN) number, 0 for zero/subnormal: 7 AND gates."""
+    return or_all(b, e)
+
+
+def pack(sign, exp: Word, frac: Word) -> Word:
+    return cat(frac, exp, np.asarray(sign, np.int32)[..., None])
+
+
+def round_pack(b: CircuitBuilder, sign, e1: Word, sig: Word, guard, sticky=None,
+               zero=None, inf=None, nan=None, exact_tiny: bool = False) -> Word:
+    """Round a normalized significand to nearest-even and pack a float32 word.
+
+    ``sig`` is 24 bits with the hidden bit at 23 (1 unless the caller flags ``zero``),
+    ``guard`` the next bit, ``sticky`` the OR of the rest (None where a tie cannot occur,
+    as in division and square root). ``e1`` is a signed word (>= 10 bits) holding the
+    biased exponent minus one, so the hidden bit carries it to the field value.
+
+    Tininess is judged the way numpy's gradual underflow would round: a value in the
+    top binade below 2^-126 becomes 2^-126 exactly when the significand is all ones
+    (forcing the increment there does it); anything else below 2^-126 flushes to a
+    signed zero. Exponent fields >= 255 give signed infinity. Flags ``zero``/``inf``/
+    ``nan`` (wires or None) force those results, with nan > inf > zero precedence.
+    ``exact_tiny``: the caller guarantees results below 2^-126 are exact (addition), so
+    the sign of ``e1`` alone decides the flush.
+    """
+    e1 = wires(e1)
+    k = e1.shape[-1]
+    low = sig[..., 0]
+    rnd = guard if sticky is None else b.and_(guard, b.or_(sticky, low))
+    tiny = e1[..., -1]
+    c0 = rnd if exact_tiny else b.or_(rnd, tiny)
+    mant, carry = increment(b, sig[..., :FRAC], c0)
+    field = add(b, e1, const(1, k), carry)           # e1 + 1 + carry
+    neg = field[..., -1]
+    uf = tiny if exact_tiny else b.or_(neg, b.not_(or_all(b, field[..., : k - 1])))
+    high = or_all(b, field[..., 8 : k - 1]) if k > 9 else np.zeros_like(neg)
+    of = b.and_(b.not_(neg), b.or_(high, and_all(b, field[..., :8])))
+    if zero is not None:
+        uf = b.or_(uf, zero)
+    if inf is not None:
+        of = b.or_(of, inf)
+    if nan is not None:
+        of = b.or_(of, nan)
+    uf = b.and_(uf, b.not_(of))
+    kill = b.xor(uf, of)                              # exclusive now
+    mant = b.and_(mant, b.not_(kill)[..., None])
+    if nan is not None:
+        mant = mant.copy()
+        mant[..., FRAC - 1] = b.xor(mant[..., FRAC - 1], nan)
+    exp = b.mux(kill[..., None], field[..., :8], of[..., None])
+    return pack(sign, exp, mant)
+
+
+__all__ = ["BIAS", "FRAC", "ONE", "ZERO", "fields", "nonzero_exp", "pack", "round_pack",
+           "zext"]
