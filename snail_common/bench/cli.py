@@ -19,6 +19,17 @@ def _parse_int(text: str) -> int:
         raise click.BadParameter(f"{text!r} is not an integer (decimal or 0x-hex)") from None
 
 
+def _emit(report: dict, as_json: bool) -> None:
+    """Print a one-section report as JSON (the FORMATS contract) or as aligned lines."""
+    if as_json:
+        click.echo(json.dumps(report))
+        return
+    for key, value in next(iter(report.values())).items():
+        if isinstance(value, dict):
+            value = "  ".join(f"{k} {v}" for k, v in value.items())
+        click.echo(f"{key:>24}: {value}")
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """Benchmarks and gate counts of snail's circuits and engines."""
@@ -83,12 +94,7 @@ def compiler(gates: int, lane_words: int, as_json: bool) -> None:
     <= 30 s and <= 3 GB for 50 M gates; >= 100 M gates/s in the clear)."""
     from .compiler import compiler_report
 
-    report = compiler_report(gates, lane_words)
-    if as_json:
-        click.echo(json.dumps(report))
-    else:
-        for k, v in report["compiler"].items():
-            click.echo(f"{k:>24}: {v}")
+    _emit(compiler_report(gates, lane_words), as_json)
 
 
 @main.command()
@@ -97,12 +103,7 @@ def ops(as_json: bool) -> None:
     """AND, XOR and AND-depth of every arithmetic op (float32 and integer building blocks)."""
     from .ops import ops_report
 
-    report = ops_report()
-    if as_json:
-        click.echo(json.dumps(report))
-    else:
-        for name, c in report["ops"].items():
-            click.echo(f"{name:>16}: AND {c['and']:>6}  XOR {c['xor']:>6}  depth {c['depth']:>5}")
+    _emit(ops_report(), as_json)
 
 
 @main.command()
@@ -112,12 +113,7 @@ def engine(as_json: bool) -> None:
     per-step overhead on narrow ones, and a two-process loopback rate."""
     from .engine import engine_report
 
-    report = engine_report()
-    if as_json:
-        click.echo(json.dumps(report))
-    else:
-        for k, v in report["engine"].items():
-            click.echo(f"{k:>24}: {v}")
+    _emit(engine_report(), as_json)
 
 
 if __name__ == "__main__":
