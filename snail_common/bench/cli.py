@@ -107,6 +107,29 @@ def ops(as_json: bool) -> None:
 
 
 @main.command()
+@click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm", show_default=True,
+              help="Levenberg-Marquardt (damped) or Gauss-Newton.")
+@click.option("--mode", type=click.Choice(["sil", "do"]), default="sil", show_default=True,
+              help="sil: one iteration per circuit; do: the data-oblivious 20-iteration baseline.")
+@click.option("--points", type=click.IntRange(4, 4096), default=6, show_default=True,
+              help="Number of point correspondences the circuit takes.")
+@click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt", show_default=True,
+              help="Linear solver for the 6x6 step.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def circuit(algorithm: str, mode: str, points: int, solver: str, as_json: bool) -> None:
+    """AND/XOR gates, AND-depth, schedule steps and build time of a localization circuit."""
+    from snail_common.loc.circuits import Spec
+
+    from .circuit import circuit_report
+
+    try:
+        spec = Spec(algorithm, mode, solver, points)
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+    _emit(circuit_report(spec), as_json)
+
+
+@main.command()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def engine(as_json: bool) -> None:
     """Garbling engine: AES rate, garble/evaluate AND gates per second on wide steps,

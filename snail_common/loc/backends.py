@@ -1,0 +1,63 @@
+"""Iteration backends built on a localization circuit: encode the iteration's inputs, run
+the circuit through some bit runner, decode step and cost.
+
+The bit runner is the only thing that differs between the cleartext debug path
+(``cleartext_runner``) and the garbled service (the client's secure runner): the
+encoding, the circuit and the decoding are shared, so the two agree bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from snail_common.circuit import cache
+from snail_common.circuit.cleartext import decode_outputs, encode_inputs, evaluate_bits
+from snail_common.circuit.ir import Circuit
+from snail_common.circuit.schedule import Schedule
+
+from .circuits import Spec, build
+from .types import IterationResult, Normalized, Pose
+
+# (circuit id, input bits (n_inputs,)) -> output bits (n_outputs,)
+BitRunner = Callable[[str, np.ndarray], np.ndarray]
+
+
+def compiled(spec: Spec) -> tuple[Circuit, Schedule]:
+    """The circuit of ``spec`` and its schedule, from the on-disk cache when present."""
+    return cache.cached(spec.cache_name, lambda: build(spec))
+
+
+def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> dict[str, np.ndarray]:
+    """The SIL circuit's float32 inputs for one iteration at ``pose``."""
+    if problem.n != spec.points:
+        raise ValueError(f"circuit {spec.circuit_id} takes {spec.points} points, "
+                         f"the problem has {problem.n}")
+    weights = np.asarray(problem.weights, float)[:, None] * np.asarray(problem.axis_weights, float)
+    values = {"R": pose.R, "t": pose.t, "image": problem.image, "world": problem.world,
+              "weights": weights}
+    if spec.algorithm == "lm":
+        values["lam"] = lam
+    return {k: np.asarray(v, np.float32) for k, v in values.items()}
+
+
+def cleartext_runner(circuit_id: str, bits: np.ndarray) -> np.ndarray:
+    """Evaluate a localization circuit in the clear (debugging and tests)."""
+    _, schedule = compiled(Spec.parse(circuit_id))
+    return evaluate_bits(schedule, bits[None])[0]
+
+
+class CircuitIteration:
+    """An ``IterationBackend`` that runs the SIL circuit of ``spec`` through ``runner``."""
+
+    def __init__(self, spec: Spec, runner: BitRunner = cleartext_runner) -> None:
+        self.spec = spec
+        self.runner = runner
+        self.circuit, _ = compiled(spec)
+
+    def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
+        bits = encode_inputs(self.circuit, sil_values(self.spec, problem, pose, lam))[0]
+        out = decode_outputs(self.circuit, self.runner(self.spec.circuit_id, bits))
+        return IterationResult(step=np.asarray(out["step"], np.float64),
+                               cost=float(out["cost"]))

@@ -1,0 +1,91 @@
+"""Localization circuits by name: build, cache, and run them (cleartext or mirror).
+
+A circuit id names everything that shapes the circuit, e.g. ``lm-sil-ldlt-n6``; the
+registry prefixes it with ``loc/``. VERSION is part of the cache name, so changing the
+program invalidates cached circuits.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from snail_common.circuit import CircuitBuilder
+from snail_common.circuit.ir import Circuit
+
+from .fops import CircuitBackend, F, MirrorBackend
+from .sil import ALGORITHMS, OUTPUT_SHAPES, SOLVERS, input_shapes, sil_program
+
+VERSION = 1
+MODES = ("sil",)
+MAX_POINTS = 4096
+ID_PATTERN = re.compile(r"^(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"
+                        r"-n(?P<points>[1-9][0-9]{0,3})$")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """What a localization circuit computes; ``circuit_id`` is its public name."""
+
+    algorithm: str = "lm"
+    mode: str = "sil"
+    solver: str = "ldlt"
+    points: int = 6
+
+    def __post_init__(self) -> None:
+        if self.algorithm not in ALGORITHMS:
+            raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if not 4 <= self.points <= MAX_POINTS:
+            raise ValueError(f"points must be in 4..{MAX_POINTS}, got {self.points}")
+
+    @property
+    def circuit_id(self) -> str:
+        return f"{self.algorithm}-{self.mode}-{self.solver}-n{self.points}"
+
+    @property
+    def cache_name(self) -> str:
+        return f"loc-v{VERSION}-{self.circuit_id}"
+
+    @classmethod
+    def parse(cls, circuit_id: str) -> Spec:
+        match = ID_PATTERN.match(circuit_id)
+        if not match:
+            raise ValueError(f"not a localization circuit id: {circuit_id!r} "
+                             f"(expected e.g. 'lm-sil-ldlt-n6')")
+        return cls(match["algorithm"], match["mode"], match["solver"], int(match["points"]))
+
+
+def build(spec: Spec) -> Circuit:
+    """Emit the circuit of ``spec`` (seconds for hundreds of points; cache it)."""
+    b = CircuitBuilder()
+    be = CircuitBackend(b, depth_opt=True)
+    inputs = {name: F(be, b.input(name, shape, bits=32, dtype="float32"))
+              for name, shape in input_shapes(spec.algorithm, spec.points).items()}
+    outputs = sil_program(inputs, spec.algorithm, spec.solver)
+    for name in OUTPUT_SHAPES:
+        b.output(name, outputs[name].v, dtype="float32")
+    return b.build()
+
+
+def build_from_id(circuit_id: str) -> Circuit:
+    """Registry hook: the circuit named ``circuit_id`` (without the ``loc/`` prefix)."""
+    return build(Spec.parse(circuit_id))
+
+
+def run_mirror(spec: Spec, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The float32 mirror of the circuit: same inputs, bit-identical outputs."""
+    be = MirrorBackend()
+    shapes = input_shapes(spec.algorithm, spec.points)
+    missing = sorted(set(shapes) - set(values))
+    if missing:
+        raise ValueError(f"missing inputs {missing}")
+    inputs = {name: F(be, np.asarray(values[name], np.float32).reshape(shape))
+              for name, shape in shapes.items()}
+    outputs = sil_program(inputs, spec.algorithm, spec.solver)
+    return {name: np.asarray(outputs[name].v, np.float32) for name in OUTPUT_SHAPES}

@@ -1,0 +1,59 @@
+"""The single-iteration (SIL) program: cost and step at one pose, for LM or GN.
+
+Written once against fops.F, it is both the circuit (CircuitBackend) and its bit-identical
+float32 mirror (MirrorBackend). Inputs and outputs are named exactly like the circuit's
+groups (see INPUT_SHAPES).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from .fops import F, stack
+from .ldlt import ldlt_solve
+from .normal import UPPER, normal_equations
+
+ALGORITHMS = ("lm", "gn")
+SOLVERS = ("ldlt",)
+_DIAG = [UPPER.index((i, i)) for i in range(6)]
+
+
+def input_shapes(algorithm: str, n: int) -> dict[str, tuple[int, ...]]:
+    """Secret inputs of a SIL circuit, all float32: pose, damping (LM only), normalized image
+    points, centered map points and per-point per-axis weights."""
+    shapes = {"R": (3, 3), "t": (3,)}
+    if algorithm == "lm":
+        shapes["lam"] = ()
+    shapes.update({"image": (n, 2), "world": (n, 3), "weights": (n, 2)})
+    return shapes
+
+
+OUTPUT_SHAPES = {"step": (6,), "cost": ()}
+
+Solver = Callable[[F, F], F]
+
+
+def _solver(name: str) -> Solver:
+    if name == "ldlt":
+        return ldlt_solve
+    raise ValueError(f"solver must be one of {SOLVERS}, got {name!r}")
+
+
+def damped(hess: F, lam: F) -> F:
+    """Fletcher's damping: every diagonal entry times (1 + lambda)."""
+    scaled = hess[_DIAG] * (lam + 1.0)
+    parts = [scaled[_DIAG.index(p)] if p in _DIAG else hess[p] for p in range(len(UPPER))]
+    return stack(parts)
+
+
+def sil_program(inputs: dict[str, F], algorithm: str, solver: str) -> dict[str, F]:
+    """One iteration: the step solving (H [+ lam diag H]) step = -g, and the cost, at the
+    input pose."""
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
+    hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
+                                        inputs["world"], inputs["weights"])
+    if algorithm == "lm":
+        hess = damped(hess, inputs["lam"])
+    step = _solver(solver)(hess, -grad)
+    return {"step": step, "cost": cost}
