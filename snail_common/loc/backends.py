@@ -17,7 +17,7 @@ from snail_common.circuit.cleartext import decode_outputs, encode_inputs, evalua
 from snail_common.circuit.ir import Circuit
 from snail_common.circuit.schedule import Schedule
 
-from .circuits import Spec, build
+from .circuits import Spec, build, run_mirror
 from .types import IterationResult, Normalized, Pose
 
 # (circuit id, input bits (n_inputs,)) -> output bits (n_outputs,)
@@ -59,5 +59,18 @@ class CircuitIteration:
     def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
         bits = encode_inputs(self.circuit, sil_values(self.spec, problem, pose, lam))[0]
         out = decode_outputs(self.circuit, self.runner(self.spec.circuit_id, bits))
+        return IterationResult(step=np.asarray(out["step"], np.float64),
+                               cost=float(out["cost"]))
+
+
+class MirrorIteration:
+    """An ``IterationBackend`` on the float32 mirror: bit-identical to ``CircuitIteration``
+    (tests hold them together) and fast enough for accuracy sweeps over many scenes."""
+
+    def __init__(self, spec: Spec) -> None:
+        self.spec = spec
+
+    def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
+        out = run_mirror(self.spec, sil_values(self.spec, problem, pose, lam))
         return IterationResult(step=np.asarray(out["step"], np.float64),
                                cost=float(out["cost"]))

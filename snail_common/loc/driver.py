@@ -1,0 +1,161 @@
+"""The client's LM / GN loop around "one iteration" (secure, cleartext or float64).
+
+A backend call at a pose returns the cost AT that pose and the step FROM it, so one call
+both judges the previous step and proposes the next: the candidate pose is called with
+lambda / 10 already, in the hope of acceptance. If the candidate's cost is not lower, the
+step is rejected and the old pose is called again with lambda * 10 (a "retry" call), since
+the circuit returns only the step, not the normal equations it could be re-damped from.
+
+Counting: an *iteration* is one trial step (one candidate pose evaluated, accepted or not),
+at most max_iterations of them; *invocations* are backend calls: 1 + iterations + retries.
+
+Lambda starts at 1e-3 (the usual LM start: mostly Gauss-Newton while the model is good) and
+is clamped to [1e-8, 1e8]: below 1e-8 damping is lost in float32 rounding of diag(H), above
+1e8 the step is below any tolerance anyway. Stop (converged) when an accepted step lowered
+the cost by a relative cost_tol or less, when the next step is relatively smaller than
+step_tol, or when a rejected candidate's cost equals the current one within cost_tol (no
+progress is measurable at the backend's precision). A rejection at lambda_max stops
+without convergence. The tolerances sit above float32 noise: a circuit's cost carries a
+relative error up to ~1e-5 when the residuals are small against the image coordinates
+(cancellation in a - u), so cost_tol = 1e-4 and step_tol = 1e-5 (1e-5 rad is 0.008 px at
+f = 800, and the RMS is second order in that: ~1e-4 px).
+
+GN (lambda = 0) has no rejection: every step is taken, and the result is the best pose seen,
+so a diverging GN run still reports its best point; it stops on the same tolerances.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import apply_step
+from .types import IterationBackend, IterationResult, Normalized, Pose
+
+ALGORITHMS = ("lm", "gn")
+LAMBDA_START = 1e-3
+LAMBDA_MIN = 1e-8
+LAMBDA_MAX = 1e8
+COST_TOL = 1e-4
+STEP_TOL = 1e-5
+
+
+@dataclass(frozen=True)
+class CallRecord:
+    """One backend call: where it was made (start, candidate or retry), with which lambda,
+    the cost it returned, whether its pose became the current pose, and its wall time."""
+
+    kind: str
+    lam: float
+    cost: float
+    accepted: bool
+    wall_s: float
+
+
+@dataclass(frozen=True)
+class DriverResult:
+    pose: Pose  # in the frame of the Normalized problem the driver was given
+    cost: float
+    iterations: int
+    invocations: int
+    converged: bool
+    history: tuple[CallRecord, ...]
+
+
+def relative_step(step: np.ndarray, pose: Pose) -> float:
+    """Step size relative to the pose: translation against |t| (at least 1, the map's RMS
+    radius in the normalized frame), rotation in radians."""
+    v, w = step[:3], step[3:]
+    return max(float(np.linalg.norm(v)) / max(float(np.linalg.norm(pose.t)), 1.0),
+               float(np.linalg.norm(w)))
+
+
+class _Caller:
+    """Times and records backend calls."""
+
+    def __init__(self, nrm: Normalized, backend: IterationBackend) -> None:
+        self.nrm, self.backend = nrm, backend
+        self.history: list[CallRecord] = []
+
+    def __call__(self, pose: Pose, lam: float, kind: str) -> IterationResult:
+        start = time.perf_counter()
+        res = self.backend(self.nrm, pose, lam)
+        self.history.append(CallRecord(kind, lam, float(res.cost), kind == "start",
+                                       time.perf_counter() - start))
+        return res
+
+    def mark_accepted(self) -> None:
+        last = self.history[-1]
+        self.history[-1] = CallRecord(last.kind, last.lam, last.cost, True, last.wall_s)
+
+
+def _better(new: float, old: float) -> bool:
+    return math.isfinite(new) and new < old
+
+
+def run_lm(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iterations: int = 20,
+           *, lam0: float = LAMBDA_START, lam_min: float = LAMBDA_MIN,
+           lam_max: float = LAMBDA_MAX, cost_tol: float = COST_TOL,
+           step_tol: float = STEP_TOL) -> DriverResult:
+    """Levenberg-Marquardt with accept/reject and lambda x10 / /10 (see the module doc)."""
+    call = _Caller(nrm, backend)
+    lam = min(max(lam0, lam_min), lam_max)
+    pose, res = pose0, call(pose0, lam, "start")
+    cost, step = res.cost, res.step
+    iterations, converged = 0, relative_step(step, pose) <= step_tol
+    while not converged and iterations < max_iterations:
+        cand, lam_next = apply_step(pose, step), max(lam / 10.0, lam_min)
+        res = call(cand, lam_next, "candidate")
+        iterations += 1
+        if _better(res.cost, cost):
+            call.mark_accepted()
+            converged = (cost - res.cost <= cost_tol * cost
+                         or relative_step(res.step, cand) <= step_tol)
+            pose, cost, step, lam = cand, res.cost, res.step, lam_next
+            continue
+        if abs(res.cost - cost) <= cost_tol * cost:
+            converged = True
+        elif lam >= lam_max or iterations >= max_iterations:
+            break
+        else:
+            lam = min(lam * 10.0, lam_max)
+            step = call(pose, lam, "retry").step
+            converged = relative_step(step, pose) <= step_tol
+    return DriverResult(pose, cost, iterations, len(call.history), converged,
+                        tuple(call.history))
+
+
+def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iterations: int = 20,
+           *, cost_tol: float = COST_TOL, step_tol: float = STEP_TOL) -> DriverResult:
+    """Gauss-Newton (lambda = 0): take every step, report the best pose seen."""
+    call = _Caller(nrm, backend)
+    pose, res = pose0, call(pose0, 0.0, "start")
+    best_pose, best_cost = pose, res.cost
+    iterations, converged = 0, relative_step(res.step, pose) <= step_tol
+    while not converged and iterations < max_iterations:
+        prev_cost = res.cost
+        pose = apply_step(pose, res.step)
+        res = call(pose, 0.0, "candidate")
+        iterations += 1
+        if not math.isfinite(res.cost):
+            break
+        call.mark_accepted()
+        if res.cost < best_cost:
+            best_pose, best_cost = pose, res.cost
+        converged = (abs(prev_cost - res.cost) <= cost_tol * prev_cost
+                     or relative_step(res.step, pose) <= step_tol)
+    return DriverResult(best_pose, best_cost, iterations, len(call.history), converged,
+                        tuple(call.history))
+
+
+def run(algorithm: str, nrm: Normalized, pose0: Pose, backend: IterationBackend,
+        max_iterations: int = 20) -> DriverResult:
+    """Dispatch on the algorithm name of the command line ("lm" or "gn")."""
+    if algorithm == "lm":
+        return run_lm(nrm, pose0, backend, max_iterations)
+    if algorithm == "gn":
+        return run_gn(nrm, pose0, backend, max_iterations)
+    raise ValueError(f"algorithm: expected one of {ALGORITHMS}, got {algorithm!r}")
