@@ -13,6 +13,7 @@ from snail_common.arith import multiply as M
 from snail_common.arith import prefix as P
 from snail_common.arith import shift as S
 from snail_common.arith.words import bit, cat
+from snail_common.circuit import ONE
 
 N = 16
 MASK = (1 << N) - 1
@@ -53,6 +54,12 @@ CIRCUITS = {
     "add_carry": (lambda b, x, y: _cat2(I.add_carry(b, x, y)), TWO, U),
     "add_cin": (lambda b, x, y: I.add(b, x[..., :-1], y[..., :-1], x[..., -1]), TWO, U),
     "add_fast": (lambda b, x, y: P.add_fast(b, x, y, y[..., 0]), TWO, U),
+    "increment_fast": (lambda b, x, y: _cat2(P.increment_fast(b, x, y[..., 0])), TWO, U),
+    "prefix_and": (lambda b, x, y: P.prefix_and(b, x), TWO, U),
+    "carry_out_tree": (lambda b, x, y: np.stack([P.carry_out_tree(b, x, y),
+                                                 P.carry_out_tree(b, x, y, ONE),
+                                                 P.carry_out_tree(b, x[..., :11], y[..., 3:14],
+                                                                  y[..., 0])], -1), TWO, U),
     "sub_borrow": (lambda b, x, y: _cat2(I.sub_borrow(b, x, y)), TWO, U),
     "add_sub": (lambda b, x, y: I.add_sub(b, x, y, y[..., 3]), TWO, U),
     "negate": (lambda b, x, y: I.negate(b, x), TWO, U),
@@ -104,6 +111,13 @@ def _expect(name: str, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return ((xs & (MASK >> 1)) + (ys & (MASK >> 1)) + (xs >> (N - 1))) & (MASK >> 1)
     if name == "add_fast":
         return (xs + ys + (ys & 1)) & MASK
+    if name == "increment_fast":
+        return xs + (ys & 1)
+    if name == "prefix_and":
+        return sum(((xs & ((2 << i) - 1)) == (2 << i) - 1).astype(object) << i for i in range(N))
+    if name == "carry_out_tree":
+        c11 = ((xs & 0x7FF) + ((ys >> 3) & 0x7FF) + (ys & 1)) >> 11
+        return ((xs + ys) >> N) | (((xs + ys + 1) >> N) << 1) | (c11 << 2)
     if name == "sub_borrow":
         return ((xs - ys) & MASK) | ((xs < ys).astype(object) << N)
     if name == "add_sub":
@@ -191,6 +205,10 @@ def test_prefix_adder_is_shallower():
     ripple = Compiled(lambda b, x, y: I.add(b, x, y), TWO, U).circuit.depth()
     fast = Compiled(lambda b, x, y: P.add_fast(b, x, y), TWO, U).circuit.depth()
     assert ripple == N - 1 and fast <= 5
+    tree = Compiled(lambda b, x, y: bit(P.carry_out_tree(b, x, y, ONE)), TWO, U)
+    assert tree.circuit.depth() <= 6 and tree.ands <= 3 * N     # log depth, linear size
+    pand = Compiled(lambda b, x, y: P.prefix_and(b, x), TWO, U)
+    assert pand.circuit.depth() == 4 and pand.ands == N // 2 * 4
 
 
 def test_csd_digits_reconstruct():

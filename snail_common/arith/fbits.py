@@ -11,6 +11,7 @@ import numpy as np
 from snail_common.circuit import ONE, ZERO, CircuitBuilder
 
 from .integer import add, increment
+from .prefix import add_fast, increment_fast
 from .words import Word, and_all, cat, const, or_all, wires, zext
 
 FRAC = 23
@@ -33,7 +34,8 @@ def pack(sign, exp: Word, frac: Word) -> Word:
 
 
 def round_pack(b: CircuitBuilder, sign, e1: Word, sig: Word, guard, sticky=None,
-               zero=None, inf=None, nan=None, exact_tiny: bool = False) -> Word:
+               zero=None, inf=None, nan=None, exact_tiny: bool = False,
+               depth_opt: bool = False) -> Word:
     """Round a normalized significand to nearest-even and pack a float32 word.
 
     ``sig`` is 24 bits with the hidden bit at 23 (1 unless the caller flags ``zero``),
@@ -47,7 +49,8 @@ def round_pack(b: CircuitBuilder, sign, e1: Word, sig: Word, guard, sticky=None,
     signed zero. Exponent fields >= 255 give signed infinity. Flags ``zero``/``inf``/
     ``nan`` (wires or None) force those results, with nan > inf > zero precedence.
     ``exact_tiny``: the caller guarantees results below 2^-126 are exact (addition), so
-    the sign of ``e1`` alone decides the flush.
+    the sign of ``e1`` alone decides the flush. ``depth_opt``: log-depth increment and
+    exponent update.
     """
     e1 = wires(e1)
     k = e1.shape[-1]
@@ -55,8 +58,8 @@ def round_pack(b: CircuitBuilder, sign, e1: Word, sig: Word, guard, sticky=None,
     rnd = guard if sticky is None else b.and_(guard, b.or_(sticky, low))
     tiny = e1[..., -1]
     c0 = rnd if exact_tiny else b.or_(rnd, tiny)
-    mant, carry = increment(b, sig[..., :FRAC], c0)
-    field = add(b, e1, const(1, k), carry)           # e1 + 1 + carry
+    mant, carry = (increment_fast if depth_opt else increment)(b, sig[..., :FRAC], c0)
+    field = (add_fast if depth_opt else add)(b, e1, const(1, k), carry)   # e1 + 1 + carry
     neg = field[..., -1]
     uf = tiny if exact_tiny else b.or_(neg, b.not_(or_all(b, field[..., : k - 1])))
     high = or_all(b, field[..., 8 : k - 1]) if k > 9 else np.zeros_like(neg)

@@ -1,12 +1,17 @@
 """float32 comparisons, min/max, select, neg, abs.
 
 Subnormal inputs compare as zeros of their sign and -0 == +0, as in numpy after
-flushing. ``lt`` runs one 31-bit carry chain on the magnitudes, XORed with the sign
-when both are negative (complementing reverses unsigned order for free). A zero
-exponent on x forces the mantissa part of the chain to "not less": it only matters
-when the exponents tie, i.e. when both are zeros. With signs differing, x < y iff x is
-negative and not both zero, and the same chain (uncomplemented) then yields [y != 0]
-whenever x is zero: 31 + 7 + 4 = 42 AND gates.
+flushing. ``lt`` compares 32-bit keys on one carry chain: a float's key is its bits with
+the 31 magnitude bits complemented when it is negative and the sign bit inverted, so
+unsigned key order is float order (complementing reverses the order of negatives for
+free). Two fixes make the flushed zeros equal: a zero-exponent x counts as positive (so
+-0 and +0 share the key range just above the sign boundary), and its fraction is
+ignored by forcing the chain's carry out of the fraction bits ("x's fraction is not
+smaller"), which decides only when y is a zero too. 31 + 1 (sign) + 7 (exponent zero
+test) + 2 = 41 AND gates, one over the 40 budget: a brute-force search over XOR-only
+variants of the fixes (sign and complement choices from sx, sy and the zero test) found
+none that is free. ``depth_opt`` uses (generate, propagate)
+reduction trees instead of the chain (95 ANDs, 10 levels instead of 33).
 
 NaN: a NaN compares like a number beyond infinity of its sign (so lt(1, +NaN) is 1 and
 eq(NaN, NaN) is 1 for equal bit patterns) - unlike IEEE, where every NaN comparison is
@@ -21,36 +26,42 @@ from snail_common.circuit import ONE, CircuitBuilder
 
 from .fbits import fields, nonzero_exp
 from .integer import carries, select
-from .words import Word, and_all, broadcast_lead, wires
+from .prefix import carry_out_tree
+from .words import Word, and_all, bit, broadcast_lead, cat, wires
 
 
-def lt(b: CircuitBuilder, x: Word, y: Word) -> np.ndarray:
+def lt(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> np.ndarray:
     """x < y (one wire per word)."""
     x, y = broadcast_lead(x, y)
     sx, ex, _ = fields(x)
     sy = y[..., 31]
-    t = sy[..., None]
-    ax, ay = b.xor(x[..., :31], t), b.xor(y[..., :31], t)
-    zx = b.not_(nonzero_exp(b, ex))
-    c23 = carries(b, ax[..., :23], b.not_(ay[..., :23]), ONE)[..., -1]
-    c23 = b.or_(c23, zx)
-    ge_ = carries(b, ax[..., 23:], b.not_(ay[..., 23:]), c23)[..., -1]
-    c = b.not_(ge_)
-    differ = b.xor(sx, sy)
-    return b.mux(differ, c, b.and_(sx, b.or_(c, b.not_(zx))))
+    nzx = nonzero_exp(b, ex)
+    nky = b.xor(y[..., :31], b.not_(sy)[..., None])       # complement of y's key
+    carry = carry_out_tree if depth_opt else _ripple_carry
+    # the fraction of a zero x is ignored anyway, so it can use the raw sign (no wait)
+    kf = b.xor(x[..., :23], sx[..., None])
+    c23 = b.or_(carry(b, kf, nky[..., :23], ONE), b.not_(nzx))
+    sx = b.and_(sx, nzx)                                  # a zero x counts as +0
+    ke = b.xor(x[..., 23:31], sx[..., None])
+    ge_ = carry(b, cat(ke, bit(b.not_(sx))), cat(nky[..., 23:], bit(sy)), c23)
+    return b.not_(ge_)
 
 
-def le(b: CircuitBuilder, x: Word, y: Word) -> np.ndarray:
+def le(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> np.ndarray:
     """x <= y, i.e. not (y < x)."""
-    return b.not_(lt(b, y, x))
+    return b.not_(lt(b, y, x, depth_opt))
 
 
-def gt(b: CircuitBuilder, x: Word, y: Word) -> np.ndarray:
-    return lt(b, y, x)
+def gt(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> np.ndarray:
+    return lt(b, y, x, depth_opt)
 
 
-def ge(b: CircuitBuilder, x: Word, y: Word) -> np.ndarray:
-    return le(b, y, x)
+def ge(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> np.ndarray:
+    return le(b, y, x, depth_opt)
+
+
+def _ripple_carry(b: CircuitBuilder, x: Word, y: Word, cin) -> np.ndarray:
+    return carries(b, x, y, cin)[..., -1]
 
 
 def eq(b: CircuitBuilder, x: Word, y: Word) -> np.ndarray:

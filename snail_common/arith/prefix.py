@@ -52,3 +52,52 @@ def add_fast(b: CircuitBuilder, x: Word, y: Word, cin=ZERO) -> Word:
     c = prefix_carries(b, x[..., :-1], y[..., :-1], cin) if x.shape[-1] > 1 else \
         np.broadcast_to(wires(cin), x.shape[:-1])[..., None]
     return b.xor(b.xor(x, y), c)
+
+
+def prefix_and(b: CircuitBuilder, x: Word) -> Word:
+    """Inclusive prefix ANDs x0, x0&x1, ... (Sklansky): log-depth, (n/2)log2 n AND gates."""
+    x = wires(x)
+    n = x.shape[-1]
+    span = 1
+    while span < n:
+        idx = np.arange(n)
+        upper = (idx // span) % 2 == 1
+        src = (idx // span) * span - 1
+        x = x.copy()
+        x[..., idx[upper]] = b.and_(x[..., idx[upper]], x[..., src[upper]])
+        span *= 2
+    return x
+
+
+def increment_fast(b: CircuitBuilder, x: Word, inc=ZERO) -> tuple[Word, np.ndarray]:
+    """(x + inc mod 2^n, carry out) for a 1-bit ``inc`` with log-depth carries."""
+    x = wires(x)
+    inc = np.broadcast_to(wires(inc), x.shape[:-1])
+    c = prefix_and(b, np.concatenate([inc[..., None], x], axis=-1))
+    return b.xor(x, c[..., :-1]), c[..., -1]
+
+
+def carry_out_tree(b: CircuitBuilder, x: Word, y: Word, cin=ZERO) -> np.ndarray:
+    """Carry out of x + y + cin by a balanced (generate, propagate) reduction tree.
+
+    Log depth like the Sklansky adder but only the last carry: about 3n AND gates
+    instead of n log2 n. This is the fast comparator (x >= y is the carry of x + ~y + 1).
+    """
+    x, y = _align(x, y, False)
+    cin = wires(cin)
+    lead = np.broadcast_shapes(x.shape[:-1], cin.shape)
+    x = np.broadcast_to(x, lead + x.shape[-1:])
+    y = np.broadcast_to(y, lead + y.shape[-1:])
+    g = np.concatenate([np.broadcast_to(cin, lead)[..., None], b.and_(x, y)], axis=-1)
+    p = np.concatenate([np.zeros(lead + (1,), np.int32), b.xor(x, y)], axis=-1)
+    while g.shape[-1] > 1:
+        n = g.shape[-1]
+        lo_g, hi_g = g[..., 0 : n - 1 : 2], g[..., 1:n:2]
+        lo_p, hi_p = p[..., 0 : n - 1 : 2], p[..., 1:n:2]
+        ng = b.xor(hi_g, b.and_(hi_p, lo_g))
+        np_ = b.and_(hi_p, lo_p) if n > 2 else np.zeros_like(ng)
+        if n % 2:
+            ng = np.concatenate([ng, g[..., -1:]], axis=-1)
+            np_ = np.concatenate([np_, p[..., -1:]], axis=-1)
+        g, p = ng, np_
+    return g[..., 0]

@@ -34,14 +34,18 @@ def op_builders() -> dict[str, tuple[Callable, int, str, str]]:
     f = "float32"
     return {
         "add": (fadd.fadd, 2, f, f),
+        "add_depth_opt": (lambda b, x, y: fadd.fadd(b, x, y, depth_opt=True), 2, f, f),
         "sub": (fadd.fsub, 2, f, f),
+        "sub_depth_opt": (lambda b, x, y: fadd.fsub(b, x, y, depth_opt=True), 2, f, f),
         "mul": (fmul.fmul, 2, f, f),
         "div": (fdiv.fdiv, 2, f, f),
         "div_depth_opt": (lambda b, x, y: fdiv.fdiv(b, x, y, depth_opt=True), 2, f, f),
         "sqrt": (fsqrt.fsqrt, 1, f, f),
         "sqrt_depth_opt": (lambda b, x: fsqrt.fsqrt(b, x, depth_opt=True), 1, f, f),
         "lt": (fcmp.lt, 2, f, "bool"),
+        "lt_depth_opt": (lambda b, x, y: fcmp.lt(b, x, y, depth_opt=True), 2, f, "bool"),
         "le": (fcmp.le, 2, f, "bool"),
+        "le_depth_opt": (lambda b, x, y: fcmp.le(b, x, y, depth_opt=True), 2, f, "bool"),
         "eq": (fcmp.eq, 2, f, "bool"),
         "min": (fcmp.fmin, 2, f, f),
         "max": (fcmp.fmax, 2, f, f),
