@@ -8,6 +8,7 @@ encoding, the circuit and the decoding are shared, so the two agree bit for bit.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import numpy as np
@@ -24,8 +25,10 @@ from .types import IterationResult, Normalized, Pose
 BitRunner = Callable[[str, np.ndarray], np.ndarray]
 
 
+@functools.lru_cache(maxsize=4)
 def compiled(spec: Spec) -> tuple[Circuit, Schedule]:
-    """The circuit of ``spec`` and its schedule, from the on-disk cache when present."""
+    """The circuit of ``spec`` and its schedule: kept in memory for the next iterations,
+    loaded from the on-disk cache when present, built otherwise."""
     return cache.cached(spec.cache_name, lambda: build(spec))
 
 

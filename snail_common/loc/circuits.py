@@ -18,7 +18,7 @@ from snail_common.circuit.ir import Circuit
 from .fops import CircuitBackend, F, MirrorBackend
 from .sil import ALGORITHMS, OUTPUT_SHAPES, SOLVERS, input_shapes, sil_program
 
-VERSION = 1
+VERSION = 2
 MODES = ("sil",)
 MAX_POINTS = 4096
 ID_PATTERN = re.compile(r"^(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"

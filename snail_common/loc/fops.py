@@ -12,7 +12,8 @@ Ellipsis.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -26,6 +27,11 @@ Scalar = float | int
 
 class MirrorBackend:
     """numpy float32 with the circuits' flush-to-zero rules (snail_common.arith.mirror)."""
+
+    @contextlib.contextmanager
+    def shallow(self) -> Iterator[None]:
+        """Same values either way: only the circuit's shape changes."""
+        yield
 
     def shape(self, v: np.ndarray) -> tuple[int, ...]:
         return np.shape(v)
@@ -68,12 +74,22 @@ class MirrorBackend:
 
 
 class CircuitBackend:
-    """Emits float32 circuits into ``builder``; ``depth_opt`` picks the shallow division and
-    square root (more AND gates, far fewer AND levels) for sequential chains."""
+    """Emits float32 circuits into ``builder``. ``depth_opt`` picks the shallow division and
+    square root (more AND gates, far fewer AND levels); inside ``shallow()`` additions are
+    depth-optimized too, for the sequential chain of the 6x6 solve."""
 
     def __init__(self, builder: CircuitBuilder, depth_opt: bool = True) -> None:
         self.b = builder
         self.depth_opt = depth_opt
+        self.shallow_add = False
+
+    @contextlib.contextmanager
+    def shallow(self) -> Iterator[None]:
+        saved, self.shallow_add = self.shallow_add, True
+        try:
+            yield
+        finally:
+            self.shallow_add = saved
 
     def shape(self, v: np.ndarray) -> tuple[int, ...]:
         return np.shape(v)[:-1]
@@ -82,10 +98,10 @@ class CircuitBackend:
         return fconst(value, shape)
 
     def add(self, x, y):
-        return fadd.fadd(self.b, x, y)
+        return fadd.fadd(self.b, x, y, depth_opt=self.shallow_add)
 
     def sub(self, x, y):
-        return fadd.fsub(self.b, x, y)
+        return fadd.fsub(self.b, x, y, depth_opt=self.shallow_add)
 
     def mul(self, x, y):
         return fmul.fmul(self.b, x, y)

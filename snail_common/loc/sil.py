@@ -53,7 +53,8 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str) -> dict[str, 
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
                                         inputs["world"], inputs["weights"])
-    if algorithm == "lm":
-        hess = damped(hess, inputs["lam"])
-    step = _solver(solver)(hess, -grad)
+    with hess.be.shallow():  # the solve is one long chain: spend gates to cut depth
+        if algorithm == "lm":
+            hess = damped(hess, inputs["lam"])
+        step = _solver(solver)(hess, -grad)
     return {"step": step, "cost": cost}
