@@ -1,10 +1,31 @@
 """snail-evaluator: the server that evaluates garbled tables on the client's labels."""
 
+from __future__ import annotations
+
 import click
+
+from snail_common.net import tls
+from snail_common.net.cli import address, daemon_options, options_from
+from snail_common.net.conn import format_addr
+from snail_common.net.logs import setup
+from snail_common.net.service import run_daemon
+
+from .daemon import EvaluatorDaemon
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-def main() -> None:
-    """Evaluator daemon (arrives with the service, issue 6): evaluates the garbled stream on
-    the client's input labels and returns the active output labels."""
-    raise click.UsageError("the evaluator daemon is not built yet (issue 6)")
+@click.option("--listen", required=True, callback=address, metavar="HOST:PORT",
+              help="Address to accept clients and the garbler on (port 0: any free port).")
+@daemon_options
+def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> None:
+    """Evaluator daemon: evaluates the garbler's table stream on each client's active input
+    labels and returns the active output labels (see snail_evaluator.daemon)."""
+    try:
+        ctx = tls.server_context(tls_dir, "evaluator")
+    except (OSError, ValueError) as exc:
+        raise click.UsageError(f"--tls-dir: {exc}") from None
+    daemon = EvaluatorDaemon(options_from(kwargs), setup("evaluator", log_level))
+    try:
+        run_daemon(daemon, listen, ctx)
+    except OSError as exc:  # cannot bind the listening address
+        raise click.ClickException(f"--listen {format_addr(*listen)}: {exc}") from None

@@ -1,10 +1,36 @@
 """snail-garbler: the server that garbles circuits from client-chosen seeds."""
 
+from __future__ import annotations
+
 import click
+
+from snail_common.net import tls
+from snail_common.net.cli import address, daemon_options, options_from
+from snail_common.net.conn import format_addr
+from snail_common.net.logs import setup
+from snail_common.net.service import run_daemon
+
+from .daemon import GarblerDaemon
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-def main() -> None:
-    """Garbler daemon (arrives with the service, issue 6): garbles the cached localization
-    circuit from the client's seed and delta and streams tables to the evaluator."""
-    raise click.UsageError("the garbler daemon is not built yet (issue 6)")
+@click.option("--listen", required=True, callback=address, metavar="HOST:PORT",
+              help="Address to accept clients on (port 0: any free port).")
+@click.option("--evaluator", "evaluator", required=True, callback=address,
+              metavar="HOST:PORT", help="Address of the evaluator to stream tables to.")
+@daemon_options
+def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_level: str,
+         **kwargs) -> None:
+    """Garbler daemon: garbles circuits from each client's seed and offset and streams the
+    tables to the evaluator (see snail_garbler.daemon)."""
+    try:
+        server_ctx = tls.server_context(tls_dir, "garbler")
+        client_ctx = tls.client_context(tls_dir, "garbler")
+    except (OSError, ValueError) as exc:
+        raise click.UsageError(f"--tls-dir: {exc}") from None
+    daemon = GarblerDaemon(options_from(kwargs), setup("garbler", log_level), evaluator,
+                           client_ctx)
+    try:
+        run_daemon(daemon, listen, server_ctx)
+    except OSError as exc:  # cannot bind the listening address
+        raise click.ClickException(f"--listen {format_addr(*listen)}: {exc}") from None

@@ -1,0 +1,126 @@
+"""Both servers on loopback for one run: the default when no addresses are given.
+
+Creates throwaway certificates in a temporary directory, starts ``python -m
+snail_evaluator`` and ``python -m snail_garbler`` as subprocesses on free ports (port 0:
+each daemon reports its port in its ``listening`` log line), and stops them on exit.
+Their JSON logs go to files in the temporary directory; a daemon that fails to start
+raises ServiceError with the tail of its log.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from snail_common.net.conn import format_addr
+from snail_common.net.tls import make_certs
+
+from .secure import ServiceError
+
+STARTUP_TIMEOUT = 60.0
+STOP_TIMEOUT = 10.0
+
+
+@dataclass
+class Daemon:
+    """A running daemon subprocess."""
+
+    role: str
+    process: subprocess.Popen
+    address: str
+    log: Path
+
+    def stop(self, timeout: float = STOP_TIMEOUT) -> int:
+        """SIGTERM, then SIGKILL after ``timeout``; returns the exit status."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        return self.process.returncode
+
+
+@dataclass
+class Services:
+    """What a client needs to reach the embedded servers."""
+
+    garbler: Daemon
+    evaluator: Daemon
+    tls_dir: Path
+
+    @property
+    def garbler_addr(self) -> str:
+        return self.garbler.address
+
+    @property
+    def evaluator_addr(self) -> str:
+        return self.evaluator.address
+
+
+def start_daemon(role: str, args: list[str], log: Path, host: str = "127.0.0.1",
+                 env: Mapping[str, str] | None = None,
+                 timeout: float = STARTUP_TIMEOUT) -> Daemon:
+    """Start ``python -m snail_<role> --listen HOST:0 ARGS`` and wait until it listens."""
+    cmd = [sys.executable, "-m", f"snail_{role}", "--listen", format_addr(host, 0), *args]
+    with open(log, "wb") as err:
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=err, env={**os.environ, **(env or {})})
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        port = _listening_port(log)
+        if port is not None:
+            return Daemon(role, proc, format_addr(host, port), log)
+        if proc.poll() is not None:
+            raise ServiceError(f"the {role} exited with status {proc.returncode} at "
+                               f"startup: {_tail(log)}")
+        time.sleep(0.02)
+    proc.kill()
+    proc.wait()
+    raise ServiceError(f"the {role} did not start listening within {timeout:g} s: "
+                       f"{_tail(log)}")
+
+
+def _listening_port(log: Path) -> int | None:
+    for line in log.read_text(errors="replace").splitlines():
+        with contextlib.suppress(ValueError):
+            entry = json.loads(line)
+            if isinstance(entry, dict) and entry.get("event") == "listening":
+                return int(entry["port"])
+    return None
+
+
+def _tail(log: Path, lines: int = 5) -> str:
+    text = log.read_text(errors="replace").strip().splitlines()
+    return " | ".join(text[-lines:]) or "(no output)"
+
+
+@contextlib.contextmanager
+def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None = None,
+                      extra_args: tuple[str, ...] = ()) -> Iterator[Services]:
+    """Run both daemons on loopback with fresh certificates for the ``with`` block."""
+    with tempfile.TemporaryDirectory(prefix="snail-") as tmp:
+        root = Path(tmp)
+        tls_dir = make_certs(root / "tls")
+        common = ["--tls-dir", str(tls_dir), "--log-level", log_level, *extra_args]
+        started: list[Daemon] = []
+        try:
+            evaluator = start_daemon("evaluator", common, root / "evaluator.log", env=env)
+            started.append(evaluator)
+            garbler = start_daemon("garbler", ["--evaluator", evaluator.address, *common],
+                                   root / "garbler.log", env=env)
+            started.append(garbler)
+            yield Services(garbler, evaluator, tls_dir)
+        finally:
+            for daemon in reversed(started):
+                daemon.stop()

@@ -1,0 +1,139 @@
+"""``snail-client localize`` and ``snail-client track`` (contract: shared/FORMATS.md).
+
+Exit status: 0 success (not converging is reported, not a failure), 1 the run failed
+(network, server, integrity), 2 bad usage or bad input, with one line naming the field.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import click
+import numpy as np
+
+from snail_common.loc.problem import PoseVectors, ProblemError, load_problem, load_sequence
+
+from .localize import BACKENDS, Options, localize, secure_runner
+from .secure import ServiceError
+
+
+def _options(fn: Callable) -> Callable:
+    """The options localize and track share."""
+    decorators = [
+        click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm",
+                     show_default=True, help="Levenberg-Marquardt or Gauss-Newton."),
+        click.option("--mode", type=click.Choice(["sil", "do"]), default="sil",
+                     show_default=True,
+                     help="sil: one secure run per iteration, the client drives LM; do: the "
+                          "data-oblivious baseline, all iterations in one circuit."),
+        click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt",
+                     show_default=True, help="6x6 solver inside the circuit."),
+        click.option("--backend", type=click.Choice(BACKENDS), default="garbled",
+                     show_default=True,
+                     help="garbled: the private service; cleartext: the same circuit in the "
+                          "clear; float64: the plain reference solver (debugging only)."),
+        click.option("--max-iterations", type=click.IntRange(1, 1000), default=20,
+                     show_default=True, help="LM/GN iterations per frame at most."),
+        click.option("--min-invocations", type=click.IntRange(0, 10000), default=20,
+                     show_default=True,
+                     help="Secure runs per frame at least (padded with dummy runs) so the "
+                          "servers cannot tell how fast it converged."),
+        click.option("--pad-points", type=click.IntRange(0, 4096), default=0,
+                     show_default=True,
+                     help="Round the number of points up to a multiple of this with "
+                          "zero-weight dummies, hiding the exact count (0: no padding)."),
+        click.option("--garbler", metavar="HOST:PORT",
+                     help="Garbler address (default: start both servers on loopback)."),
+        click.option("--evaluator", metavar="HOST:PORT", help="Evaluator address."),
+        click.option("--tls-dir", type=click.Path(file_okay=False, exists=True),
+                     help="Directory with ca.pem, client.pem and client.key."),
+        click.option("--json", "as_json", is_flag=True,
+                     help="Print the snail-result/1 JSON record(s) instead of a summary."),
+        click.option("--output", type=click.Path(dir_okay=False, writable=True),
+                     help="Also write the result JSON to this file."),
+    ]
+    for decorate in reversed(decorators):
+        fn = decorate(fn)
+    return fn
+
+
+def _make_options(kw: dict) -> Options:
+    try:
+        return Options(kw["algorithm"], kw["mode"], kw["solver"], kw["backend"],
+                       kw["max_iterations"], kw["min_invocations"], kw["pad_points"],
+                       kw["garbler"], kw["evaluator"], kw["tls_dir"])
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+
+
+def _summary(record: dict) -> str:
+    t = record["traffic"]
+    mb = t["garbler_to_evaluator"] / 1e6
+    per_it = record["timing"]["per_iteration_s"]
+    mean = float(np.mean(per_it)) if per_it else 0.0
+    state = "converged" if record["converged"] else "NOT converged"
+    return (f"rvec {np.round(record['rvec'], 6).tolist()}  tvec "
+            f"{np.round(record['tvec'], 6).tolist()}\n"
+            f"rms {record['rms_px']:.4f} px  {state} after {record['iterations']} iterations "
+            f"({record['invocations']} invocations, {record['backend']})\n"
+            f"time {record['timing']['total_s']:.2f} s ({mean:.3f} s per call)  "
+            f"garbler->evaluator {mb:.1f} MB, client sent "
+            f"{(t['client_to_garbler'] + t['client_to_evaluator']) / 1e3:.1f} kB")
+
+
+def _fail(code: int, message: str) -> None:
+    click.echo(f"snail-client: {message}", err=True)
+    sys.exit(code)
+
+
+def _run(problems: list, options: Options, as_json: bool, output: str | None) -> None:
+    records = []
+    try:
+        with secure_runner(options) as runner:
+            previous: PoseVectors | None = None
+            for index, problem in enumerate(problems):
+                record = localize(problem, options, runner, initial=previous)
+                if len(problems) > 1:
+                    record["frame"] = index
+                records.append(record)
+                previous = PoseVectors(np.array(record["rvec"]), np.array(record["tvec"]))
+                click.echo(json.dumps(record) if as_json else _summary(record))
+    except (ProblemError, ValueError) as e:
+        _fail(2, str(e))
+    except ServiceError as e:
+        _fail(1, str(e))
+    if output:
+        payload = records[0] if len(records) == 1 else records
+        Path(output).write_text(json.dumps(payload, indent=1) + "\n")
+
+
+@click.command("localize")
+@click.option("--input", "input_path", required=True,
+              type=click.Path(exists=True, dir_okay=False),
+              help="Problem file (snail-problem/1 JSON).")
+@_options
+def localize_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> None:
+    """Find the camera pose of one image privately."""
+    options = _make_options(kw)
+    try:
+        problem = load_problem(input_path)
+    except ProblemError as e:
+        _fail(2, f"{input_path}: {e}")
+    _run([problem], options, as_json, output)
+
+
+@click.command("track")
+@click.option("--input", "input_path", required=True, type=click.Path(exists=True),
+              help="Sequence: a JSON Lines file or a folder of problem files (name order).")
+@_options
+def track_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> None:
+    """Localize a sequence, each frame starting from the previous frame's pose."""
+    options = _make_options(kw)
+    try:
+        problems = load_sequence(input_path)
+    except ProblemError as e:
+        _fail(2, f"{input_path}: {e}")
+    _run(problems, options, as_json, output)

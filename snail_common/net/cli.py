@@ -1,0 +1,54 @@
+"""Command-line plumbing shared by ``snail-garbler`` and ``snail-evaluator``."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import click
+
+from .conn import parse_addr
+from .service import Options
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def address(ctx: click.Context, param: click.Parameter, value: str | None):
+    """click callback: HOST:PORT -> (host, port)."""
+    if value is None:
+        return None
+    try:
+        return parse_addr(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """The flags every daemon takes (besides its addresses)."""
+    defaults = Options()
+    for option in reversed([
+        click.option("--tls-dir", required=True,
+                     type=click.Path(exists=True, file_okay=False),
+                     help="Directory made by 'snail-client certs' (CA and role certs)."),
+        click.option("--log-level", type=click.Choice(LOG_LEVELS), default="info",
+                     show_default=True, help="JSON log lines on stderr from this level."),
+        click.option("--max-sessions", type=click.IntRange(1, 100_000),
+                     default=defaults.max_sessions, show_default=True,
+                     help="Concurrent sessions before new ones are refused as busy."),
+        click.option("--session-timeout", type=click.FloatRange(0.1, 3600),
+                     default=defaults.session_timeout, show_default=True,
+                     help="Seconds a session may wait for its peer's next message."),
+        click.option("--workers", type=click.IntRange(1, 256), default=defaults.workers,
+                     show_default=True, help="Threads for garbling/evaluation."),
+        click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
+                     show_default=True,
+                     help="Seconds SIGTERM waits for running sessions to finish."),
+    ]):
+        fn = option(fn)
+    return fn
+
+
+def options_from(kwargs: dict[str, Any]) -> Options:
+    return Options(max_sessions=kwargs["max_sessions"],
+                   session_timeout=kwargs["session_timeout"], grace=kwargs["grace"],
+                   workers=kwargs["workers"])

@@ -1,0 +1,51 @@
+"""Errors of the wire protocol, with the machine-readable codes sent in ``error`` messages."""
+
+from __future__ import annotations
+
+# codes of ``error`` messages (the message text says what exactly was wrong)
+MALFORMED = "malformed"  # not a msgpack map, wrong field type, duplicate key, ext type ...
+OVERSIZE = "oversize"  # frame longer than the receiver's maximum
+VERSION = "version"  # protocol version this build does not speak
+UNKNOWN_TYPE = "unknown_type"
+MISSING_FIELD = "missing_field"
+UNKNOWN_FIELD = "unknown_field"
+UNEXPECTED = "unexpected"  # a valid message this peer may not send here or now
+FORBIDDEN = "forbidden"  # the peer certificate's role may not do this
+UNKNOWN_CIRCUIT = "unknown_circuit"
+CIRCUIT_MISMATCH = "circuit_mismatch"  # content hash differs between peers
+BAD_REQUEST = "bad_request"  # well-formed but invalid values (delta parity, label count ...)
+DUPLICATE_SESSION = "duplicate_session"
+BUSY = "busy"  # max sessions reached
+TIMEOUT = "timeout"
+PEER_LOST = "peer_lost"  # the other server went away mid-session
+ABORTED = "aborted"  # cancelled by a peer
+STREAM = "stream"  # the garbled-table stream does not fit the circuit
+SHUTDOWN = "shutdown"
+INTERNAL = "internal"
+
+
+class ProtocolError(Exception):
+    """A peer broke the protocol (or a request cannot be served): ``code`` is one of the
+    codes above and goes on the wire with the message."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+    def __str__(self) -> str:
+        return f"{self.code}: {self.message}"
+
+
+class RemoteError(Exception):
+    """The peer sent an ``error`` message."""
+
+    def __init__(self, code: str, message: str, sid: bytes | None = None) -> None:
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message
+        self.sid = sid
+
+
+class ConnectionClosed(ConnectionError):
+    """The peer closed the connection or it broke (EOF, reset, TLS failure)."""

@@ -1,0 +1,172 @@
+"""Framing: a 4-byte big-endian length, then one msgpack map (protocol version ``v``, type
+``t``, fields; see messages.py).
+
+Decoding is strict: a frame longer than the receiver's maximum is refused before its body
+is read; the body must be exactly one msgpack map with string keys, no duplicate keys and
+no extension types (msgpack never builds objects beyond plain data, and pickle is never
+used); the version must match and the message must fit the schema. Every violation is a
+ProtocolError naming it. Large binary fields (garbled tables, labels) are written as a
+separate buffer after their msgpack header, so they are not copied into the frame.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Mapping
+from typing import Any
+
+import msgpack
+
+from .errors import MALFORMED, OVERSIZE, VERSION, ProtocolError
+from .messages import validate
+
+PROTOCOL_VERSION = 1
+MAX_FRAME = 4 << 20  # bytes of one frame body; table frames are ~1 MiB
+LENGTH = struct.Struct(">I")
+_INLINE_BIN = 1 << 14  # shorter binary fields are packed inline
+
+
+def encode(msg: Mapping[str, Any]) -> list[bytes]:
+    """The frame of ``msg`` (a dict from messages.make) as buffers to write in order."""
+    packer = msgpack.Packer(use_bin_type=True, autoreset=True)
+    parts: list[bytes] = []
+    head = bytearray(packer.pack_map_header(len(msg) + 1))
+    head += packer.pack("v") + packer.pack(PROTOCOL_VERSION)
+    for key, value in msg.items():
+        head += packer.pack(key)
+        if isinstance(value, bytes) and len(value) > _INLINE_BIN:
+            head += _bin_header(len(value))
+            parts += [bytes(head), value]
+            head = bytearray()
+        else:
+            head += packer.pack(value)
+    if head:
+        parts.append(bytes(head))
+    size = sum(len(p) for p in parts)
+    if size > MAX_FRAME:
+        raise ProtocolError(OVERSIZE, f"{msg.get('t')} frame of {size} bytes exceeds the "
+                                      f"maximum of {MAX_FRAME}")
+    return [LENGTH.pack(size), *parts]
+
+
+def _bin_header(n: int) -> bytes:
+    """msgpack's bin 8/16/32 header for ``n`` bytes."""
+    if n < 1 << 8:
+        return b"\xc4" + n.to_bytes(1, "big")
+    if n < 1 << 16:
+        return b"\xc5" + n.to_bytes(2, "big")
+    return b"\xc6" + n.to_bytes(4, "big")
+
+
+def encode_bytes(msg: Mapping[str, Any]) -> bytes:
+    """The frame of ``msg`` as one bytes object (tests, small messages)."""
+    return b"".join(encode(msg))
+
+
+def _pairs(pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        raise ProtocolError(MALFORMED, "a map in the frame repeats a key")
+    return out
+
+
+def decode(body: bytes | memoryview) -> dict[str, Any]:
+    """A frame body -> the validated message (without ``v``)."""
+    try:
+        msg = msgpack.unpackb(body, raw=False, strict_map_key=True, max_ext_len=0,
+                              object_pairs_hook=_pairs)
+    except ProtocolError:
+        raise
+    except (ValueError, msgpack.UnpackException) as exc:
+        raise ProtocolError(MALFORMED, f"frame is not valid msgpack: {exc}") from None
+    if not isinstance(msg, dict):
+        raise ProtocolError(MALFORMED, f"frame holds a {type(msg).__name__}, not a map")
+    version = msg.pop("v", None)
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(VERSION, f"protocol version {version!r} is not supported "
+                                     f"(this build speaks {PROTOCOL_VERSION})")
+    validate(msg)
+    return msg
+
+
+def _oversize(length: int, max_frame: int) -> ProtocolError:
+    return ProtocolError(OVERSIZE, f"frame of {length} bytes exceeds the maximum of "
+                                   f"{max_frame}")
+
+
+class FrameReader:
+    """Incremental decoder for a BufferedProtocol: the transport decrypts straight into
+    ``buffer()``, ``filled(n)`` decodes the frames those bytes complete.
+
+    Small frames share one buffer; a larger frame body (garbled tables) gets a dedicated,
+    reused buffer of its exact length once its header is known, so the bytes are written
+    once by TLS and copied once by msgpack. The length is checked before any of the body
+    is accepted, so an oversized frame costs nothing.
+    """
+
+    SMALL = 256 << 10
+    BIG = 16 << 10  # incomplete frames longer than this go to the dedicated buffer
+    MIN_FREE = 16 << 10
+
+    def __init__(self, max_frame: int = MAX_FRAME) -> None:
+        self.max_frame = max_frame
+        self._small = bytearray(self.SMALL)
+        self._start = self._end = 0
+        self._big = bytearray(0)
+        self._big_len = 0  # > 0 while a body is being received into _big
+        self._big_pos = 0
+
+    @property
+    def partial(self) -> bool:
+        """Part of a frame is buffered (an EOF now cuts a frame)."""
+        return self._big_len > 0 or self._end > self._start
+
+    def buffer(self) -> memoryview:
+        """Where the next received bytes must be written."""
+        if self._big_len:
+            return memoryview(self._big)[self._big_pos : self._big_len]
+        if len(self._small) - self._end < self.MIN_FREE:
+            n = self._end - self._start
+            self._small[:n] = self._small[self._start : self._end]
+            self._start, self._end = 0, n
+        return memoryview(self._small)[self._end :]
+
+    def filled(self, n: int) -> list[tuple[dict[str, Any], int]]:
+        """Account ``n`` bytes written to ``buffer()``; the completed (message, wire size)
+        pairs. Raises ProtocolError at the first bad frame (earlier ones are lost with
+        the connection, which the caller closes)."""
+        if self._big_len:
+            self._big_pos += n
+            if self._big_pos < self._big_len:
+                return []
+            length, self._big_len = self._big_len, 0
+            with memoryview(self._big) as view:
+                return [(decode(view[:length]), LENGTH.size + length)] + self._parse()
+        self._end += n
+        return self._parse()
+
+    def _parse(self) -> list[tuple[dict[str, Any], int]]:
+        out = []
+        buf = self._small
+        while self._end - self._start >= LENGTH.size:
+            (length,) = LENGTH.unpack_from(buf, self._start)
+            if length > self.max_frame:
+                raise _oversize(length, self.max_frame)
+            body = self._start + LENGTH.size
+            have = self._end - body
+            if have >= length:
+                with memoryview(buf) as view:
+                    out.append((decode(view[body : body + length]), LENGTH.size + length))
+                self._start = body + length
+            elif length > self.BIG:
+                if len(self._big) < length:
+                    self._big = bytearray(length)
+                self._big[:have] = buf[body : self._end]
+                self._big_len, self._big_pos = length, have
+                self._start = self._end = 0
+                break
+            else:
+                break
+        if self._start == self._end:
+            self._start = self._end = 0
+        return out

@@ -1,0 +1,175 @@
+"""The message catalogue of the snail protocol and its strict field validation.
+
+Every frame is a msgpack map with ``v`` (protocol version), ``t`` (type) and exactly the
+fields below; a missing, unknown or mistyped field is a ProtocolError naming it.
+``sid`` is a 16-byte random session id chosen by the client per invocation; labels are
+16 bytes each (``snail_common.gc.labels_to_bytes``); long label vectors are cut into chunks
+of at most ``LABEL_CHUNK`` labels carrying their ``start`` index and the ``total`` count.
+
+Who sends what (anything else is rejected with ``unexpected`` or ``forbidden``):
+
+connecting side -> server   ``hello``; server replies ``capabilities``
+client -> garbler            ``garble_request``, ``error`` (cancels a sid), ``health_request``,
+                             ``bye``
+client -> evaluator          ``session_start``, ``input_labels``, ``error``, ``health_request``,
+                             ``bye``
+garbler -> evaluator         ``session_start``, ``tables`` ... (one session at a time per
+                             connection); evaluator answers ``done`` or ``error``
+garbler -> client            ``output_zero_labels`` chunks, then ``stats``; or ``error``
+evaluator -> client          ``output_labels`` chunks, then ``stats``; or ``error``
+server -> anyone             ``health`` (reply to ``health_request``), ``error``, ``bye``
+
+The garbler never receives input labels and the evaluator never receives a seed or delta:
+there is no message carrying them to the wrong role.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from .errors import MALFORMED, MISSING_FIELD, UNKNOWN_FIELD, UNKNOWN_TYPE, ProtocolError
+
+ROLES = ("client", "garbler", "evaluator")
+SID_BYTES = 16
+LABEL_BYTES = 16
+LABEL_CHUNK = 1 << 16  # labels per chunk: 1 MiB
+MAX_TEXT = 1024
+MAX_LABELS = 1 << 28
+_HASH = re.compile(r"^[0-9a-f]{64}$")
+
+Validator = Callable[[str, Any], None]
+
+
+def _fail(name: str, what: str, value: Any) -> None:
+    raise ProtocolError(MALFORMED, f"field {name!r} must be {what}, got {_show(value)}")
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, (bytes, bytearray)):
+        return f"{len(value)} bytes"
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def text(max_len: int = MAX_TEXT) -> Validator:
+    def check(name: str, v: Any) -> None:
+        if not isinstance(v, str) or len(v) > max_len:
+            _fail(name, f"a string of at most {max_len} characters", v)
+    return check
+
+
+def count(name: str, v: Any) -> None:
+    if type(v) is not int or not 0 <= v < 1 << 62:
+        _fail(name, "a non-negative integer", v)
+
+
+def blob(size: int | None = None, multiple: int = 1) -> Validator:
+    def check(name: str, v: Any) -> None:
+        if not isinstance(v, bytes):
+            _fail(name, "binary", v)
+        if size is not None and len(v) != size:
+            _fail(name, f"{size} bytes", v)
+        if len(v) % multiple:
+            _fail(name, f"a multiple of {multiple} bytes", v)
+    return check
+
+
+def one_of(choices: tuple[str, ...]) -> Validator:
+    def check(name: str, v: Any) -> None:
+        if v not in choices:
+            _fail(name, f"one of {choices}", v)
+    return check
+
+
+def content_hash(name: str, v: Any) -> None:
+    if not isinstance(v, str) or not _HASH.match(v):
+        _fail(name, "a SHA-256 hex digest", v)
+
+
+def seconds(name: str, v: Any) -> None:
+    if not isinstance(v, float) or not math.isfinite(v) or v < 0:
+        _fail(name, "a non-negative float", v)
+
+
+def text_list(name: str, v: Any) -> None:
+    if not isinstance(v, list) or len(v) > 64 or not all(
+            isinstance(x, str) and len(x) <= 64 for x in v):
+        _fail(name, "a list of at most 64 short strings", v)
+
+
+def number_map(kind: type) -> Validator:
+    def check(name: str, v: Any) -> None:
+        ok = isinstance(v, dict) and len(v) <= 32 and all(
+            isinstance(k, str) and len(k) <= 64 and isinstance(x, (int, float))
+            and not isinstance(x, bool) and math.isfinite(x) and x >= 0 for k, x in v.items())
+        if not ok or (kind is int and not all(type(x) is int for x in v.values())):
+            _fail(name, f"a map of names to non-negative {kind.__name__}s", v)
+    return check
+
+
+sid = blob(SID_BYTES)
+labels = blob(multiple=LABEL_BYTES)
+key16 = blob(16)
+circuit = text(128)
+
+# type -> (required fields, optional fields)
+SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
+    "hello": ({"role": one_of(ROLES), "software": text(64), "max_frame": count}, {}),
+    "capabilities": ({"role": one_of(ROLES), "software": text(64), "max_frame": count,
+                      "families": text_list, "max_sessions": count}, {}),
+    "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash}, {}),
+    "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
+                        "delta": key16, "key": key16}, {}),
+    "input_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
+    "tables": ({"sid": sid, "data": blob()}, {}),
+    "done": ({"sid": sid}, {}),
+    "output_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
+    "output_zero_labels": ({"sid": sid, "start": count, "total": count, "labels": labels},
+                           {}),
+    "stats": ({"sid": sid, "traffic": number_map(int), "timing": number_map(float)}, {}),
+    "health_request": ({}, {}),
+    "health": ({"role": one_of(ROLES), "sessions": number_map(int), "uptime_s": seconds},
+               {}),
+    "error": ({"code": text(64), "message": text()}, {"sid": sid}),
+    "bye": ({}, {}),
+}
+
+
+def validate(msg: Mapping[str, Any]) -> None:
+    """Raise ProtocolError unless ``msg`` (without ``v``) is a well-formed message."""
+    kind = msg.get("t")
+    if not isinstance(kind, str):
+        raise ProtocolError(MISSING_FIELD if kind is None else MALFORMED,
+                            "message has no string field 't' (its type)")
+    if kind not in SCHEMA:
+        raise ProtocolError(UNKNOWN_TYPE, f"unknown message type {_show(kind)}")
+    required, optional = SCHEMA[kind]
+    for name, check in required.items():
+        if name not in msg:
+            raise ProtocolError(MISSING_FIELD, f"{kind} message lacks field {name!r}")
+        check(name, msg[name])
+    for name, value in msg.items():
+        if name in required or name == "t":
+            continue
+        if name not in optional:
+            raise ProtocolError(UNKNOWN_FIELD, f"{kind} message has unknown field "
+                                               f"{_show(name)}")
+        optional[name](name, value)
+
+
+def make(kind: str, **fields: Any) -> dict[str, Any]:
+    """A validated message dict (raises ProtocolError on a programming error as well)."""
+    msg = {"t": kind, **fields}
+    validate(msg)
+    return msg
+
+
+def error(code: str, message: str, sid_: bytes | None = None) -> dict[str, Any]:
+    """An ``error`` message; the text is cut to the protocol's limit."""
+    msg = {"t": "error", "code": code, "message": message[:MAX_TEXT]}
+    if sid_ is not None:
+        msg["sid"] = sid_
+    return msg

@@ -1,0 +1,238 @@
+"""What both daemons share: the TLS listener, connection opening, compiled circuits, the
+worker pool, session bookkeeping, health, structured logs and graceful shutdown.
+
+CPU work (compiling, garbling, evaluating) runs in a thread pool: numpy and AES release
+the GIL, and the event loop stays free for other sessions, TLS and health requests.
+SIGTERM/SIGINT stop accepting, let running sessions finish for up to ``grace`` seconds,
+then say ``bye`` to every peer and exit.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import ssl
+import sys
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from snail_common.circuit import registry
+from snail_common.circuit.ir import Circuit
+from snail_common.circuit.schedule import Schedule
+from snail_common.gc.plan import plan_for
+
+from . import messages
+from .conn import SOFTWARE, Connection, accept
+from .errors import (
+    BUSY,
+    CIRCUIT_MISMATCH,
+    INTERNAL,
+    UNKNOWN_CIRCUIT,
+    ConnectionClosed,
+    ProtocolError,
+    RemoteError,
+)
+from .frames import MAX_FRAME
+from .logs import announce, event
+
+T = TypeVar("T")
+# workers hold the GIL between numpy calls; a short switch interval lets the event loop
+# (TLS, other sessions) in sooner than the default 5 ms
+SWITCH_INTERVAL = 5e-4
+
+
+@dataclass
+class Options:
+    """Daemon settings shared by garbler and evaluator (CLI flags of the same names)."""
+
+    max_sessions: int = 64
+    session_timeout: float = 30.0  # longest wait for a peer's next message mid-session
+    handshake_timeout: float = 10.0
+    grace: float = 10.0  # how long shutdown waits for running sessions
+    workers: int = max(2, os.cpu_count() or 2)
+
+
+class Daemon:
+    """Base of the garbler and evaluator daemons; subclasses implement ``serve``."""
+
+    role = ""
+    allowed: tuple[str, ...] = ()  # certificate roles that may connect
+
+    def __init__(self, options: Options, logger: logging.Logger) -> None:
+        self.options = options
+        self.log = logger
+        self.pool = ThreadPoolExecutor(options.workers, thread_name_prefix=self.role)
+        self.connections: set[Connection] = set()
+        self._tasks: set[asyncio.Task] = set()
+        self._planned: dict[str, int] = {}  # circuit id -> id() of the planned schedule
+        self.counters = {"active": 0, "streaming": 0, "done": 0, "failed": 0,
+                         "rejected": 0}
+        self.started = time.monotonic()
+        self.stopping = asyncio.Event()
+
+    # ---- subclass interface ------------------------------------------------------------
+    async def serve(self, conn: Connection) -> None:
+        """Handle one accepted connection until it ends."""
+        raise NotImplementedError
+
+    async def shutdown_extra(self) -> None:
+        """Close what the subclass owns (e.g. pooled outgoing connections)."""
+
+    # ---- helpers for subclasses ----------------------------------------------------------
+    def capabilities(self) -> dict[str, Any]:
+        return messages.make("capabilities", role=self.role, software=SOFTWARE,
+                             max_frame=MAX_FRAME, families=list(registry.FAMILIES),
+                             max_sessions=self.options.max_sessions)
+
+    def health(self) -> dict[str, Any]:
+        sessions = dict(self.counters, connections=len(self.connections))
+        return messages.make("health", role=self.role, sessions=sessions,
+                             uptime_s=round(time.monotonic() - self.started, 3))
+
+    def submit(self, fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
+        """Start CPU work in the pool now."""
+        return asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
+
+    async def work(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run CPU work in the pool and wait for it."""
+        return await self.submit(fn, *args)
+
+    async def circuit(self, circuit_id: str, content_hash: str) -> tuple[Circuit, Schedule]:
+        """The compiled circuit (once per daemon) whose hash must equal the peer's."""
+        try:
+            ready = registry.lookup(circuit_id)  # the common case: no thread hop
+            if ready is not None and self._planned.get(circuit_id) == id(ready[1]):
+                circuit, schedule = ready
+            else:
+                circuit, schedule = await self.work(_prepare, circuit_id)
+                self._planned[circuit_id] = id(schedule)
+        except registry.UnknownCircuit as exc:
+            raise ProtocolError(UNKNOWN_CIRCUIT, str(exc)) from None
+        if circuit.content_hash() != content_hash:
+            raise ProtocolError(CIRCUIT_MISMATCH, f"circuit {circuit_id} has content hash "
+                                                  f"{circuit.content_hash()[:16]}... here, "
+                                                  f"the peer has {content_hash[:16]}...")
+        return circuit, schedule
+
+    def admit(self) -> None:
+        """Count a new session, or refuse it when the daemon is full or stopping."""
+        if self.stopping.is_set():
+            raise ProtocolError(BUSY, f"the {self.role} is shutting down")
+        if self.counters["active"] >= self.options.max_sessions:
+            raise ProtocolError(BUSY, f"the {self.role} runs its maximum of "
+                                      f"{self.options.max_sessions} sessions")
+        self.counters["active"] += 1
+
+    def finish(self, ok: bool) -> None:
+        self.counters["active"] -= 1
+        self.counters["done" if ok else "failed"] += 1
+
+    # ---- listener ------------------------------------------------------------------------
+    def _opened(self, conn: Connection) -> None:
+        """A TLS connection is up (handshake done): serve it in its own task."""
+        task = asyncio.get_running_loop().create_task(self._on_connect(conn))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _refused(self, exc: ssl.SSLError) -> None:
+        """A TLS handshake failed (no or foreign certificate, TLS < 1.3 ...)."""
+        self.counters["rejected"] += 1
+        event(self.log, "tls_refused", logging.WARNING, reason=str(exc))
+
+    async def _on_connect(self, conn: Connection) -> None:
+        peer = str(conn.peer)
+        try:
+            await accept(conn, self.capabilities(), self.allowed,
+                         self.options.handshake_timeout)
+        except (ProtocolError, RemoteError, ConnectionClosed, TimeoutError) as exc:
+            self.counters["rejected"] += 1
+            event(self.log, "connection_rejected", logging.WARNING, peer=peer,
+                  reason=str(exc))
+            return
+        self.connections.add(conn)
+        event(self.log, "connection_open", peer=peer, peer_role=conn.peer_role)
+        try:
+            await self.serve(conn)
+        except Exception as exc:  # a bug must not take the daemon down: report and drop
+            self.log.exception("connection_error", extra={"snail_fields": {"peer": peer}})
+            await conn.close(messages.error(INTERNAL, f"internal error: {exc!r}"))
+        finally:
+            self.connections.discard(conn)
+            await conn.close()
+            event(self.log, "connection_closed", peer=peer, peer_role=conn.peer_role,
+                  bytes_in=conn.bytes_in, bytes_out=conn.bytes_out)
+
+    async def run(self, host: str, port: int, ctx: ssl.SSLContext) -> None:
+        """Listen until SIGTERM/SIGINT, then shut down gracefully."""
+        loop = asyncio.get_running_loop()
+        loop.set_exception_handler(self._loop_error)
+        sys.setswitchinterval(SWITCH_INTERVAL)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self.stopping.set)
+        _audit_handshakes(ctx, self._refused)
+        server = await loop.create_server(
+            lambda: Connection(MAX_FRAME, on_open=self._opened), host, port, ssl=ctx,
+            ssl_handshake_timeout=self.options.handshake_timeout)
+        announce(self.log, "listening", host=host, port=server.sockets[0].getsockname()[1],
+                 pid=os.getpid(), max_sessions=self.options.max_sessions,
+                 workers=self.options.workers)
+        await self.stopping.wait()
+        event(self.log, "shutting_down", active=self.counters["active"])
+        server.close()
+        deadline = time.monotonic() + self.options.grace
+        while self.counters["active"] and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        await self.shutdown_extra()
+        await asyncio.gather(*(c.close(messages.make("bye"), timeout=0.5)
+                               for c in list(self.connections)), return_exceptions=True)
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(server.wait_closed(), 1.0)
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        announce(self.log, "stopped", **self.counters)
+
+    def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        """asyncio's unhandled errors (e.g. failed TLS handshakes) as structured logs."""
+        exc = context.get("exception")
+        event(self.log, "loop_error", logging.WARNING, message=context.get("message", ""),
+              error=repr(exc) if exc else "")
+
+
+def _audit_handshakes(ctx: ssl.SSLContext, refused: Callable[[ssl.SSLError], None]) -> None:
+    """Report failed handshakes: the event loop drops them silently (they never reach a
+    protocol), so the TLS objects of ``ctx`` report them on the way out."""
+
+    class AuditedSSLObject(ssl.SSLObject):
+        def do_handshake(self) -> None:
+            try:
+                super().do_handshake()
+            except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
+                raise
+            except ssl.SSLError as exc:
+                refused(exc)
+                raise
+
+    ctx.sslobject_class = AuditedSSLObject
+
+
+def _prepare(circuit_id: str) -> tuple[Circuit, Schedule]:
+    """Compile (or load) the circuit and build its engine plan once."""
+    circuit, schedule = registry.compiled(circuit_id)
+    plan_for(schedule)
+    return circuit, schedule
+
+
+def run_daemon(daemon: Daemon, listen: tuple[str, int], ctx: ssl.SSLContext) -> None:
+    """Run ``daemon`` until it is stopped, on uvloop (asyncio's own loop on Windows,
+    where uvloop does not exist)."""
+    if sys.platform == "win32":
+        asyncio.run(daemon.run(*listen, ctx))
+        return
+    import uvloop
+
+    uvloop.run(daemon.run(*listen, ctx))

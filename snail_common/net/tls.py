@@ -1,0 +1,153 @@
+"""TLS 1.3 with mutual authentication on every link, and the role of a peer from its cert.
+
+``make_certs(dir)`` writes a private CA and one certificate per role (EC P-256 keys):
+
+    ca.pem ca.key  garbler.pem garbler.key  evaluator.pem evaluator.key  client.pem client.key
+
+The role is the certificate's common name (``snail garbler`` etc. under organization
+``snail``); only certificates signed by the CA are accepted, so a peer cannot claim a role
+it has no certificate for. Servers require a client certificate; clients verify the server
+name against the SAN (localhost, 127.0.0.1, ::1 and any extra hosts) and check that the
+server has the role they meant to reach, so a client never sends its seed to the evaluator
+by a swapped address.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import os
+import ssl
+from collections.abc import Iterable
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from .messages import ROLES
+
+CA = "ca"
+_ORG = "snail"
+_PREFIX = "snail "
+VALID_DAYS = 365
+DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
+
+
+def cert_path(tls_dir: str | Path, name: str) -> Path:
+    return Path(tls_dir) / f"{name}.pem"
+
+
+def key_path(tls_dir: str | Path, name: str) -> Path:
+    return Path(tls_dir) / f"{name}.key"
+
+
+def _name(common: str) -> x509.Name:
+    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, _ORG),
+                      x509.NameAttribute(NameOID.COMMON_NAME, common)])
+
+
+def _san(hosts: Iterable[str]) -> x509.SubjectAlternativeName:
+    names: list[x509.GeneralName] = []
+    for host in dict.fromkeys(hosts):
+        try:
+            names.append(x509.IPAddress(ipaddress.ip_address(host)))
+        except ValueError:
+            names.append(x509.DNSName(host))
+    return x509.SubjectAlternativeName(names)
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+    data = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                             serialization.NoEncryption())
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+
+
+def _builder(subject: x509.Name, issuer: x509.Name, key: ec.EllipticCurvePrivateKey,
+             days: int) -> x509.CertificateBuilder:
+    now = dt.datetime.now(dt.timezone.utc)
+    return (x509.CertificateBuilder().subject_name(subject).issuer_name(issuer)
+            .public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(minutes=5))
+            .not_valid_after(now + dt.timedelta(days=days)))
+
+
+def make_certs(directory: str | Path, hosts: Iterable[str] = (),
+               days: int = VALID_DAYS) -> Path:
+    """Create a CA and certificates for garbler, evaluator and client in ``directory``.
+
+    ``hosts`` are extra DNS names or IP addresses the servers are reached by (e.g. the
+    compose service names). Keys are written with mode 0600; keep ``ca.key`` off the
+    servers in a real deployment (it is only needed to issue more certificates).
+    """
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = _name("snail CA")
+    ca_cert = (_builder(ca_name, ca_name, ca_key, days)
+               .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+               .add_extension(x509.KeyUsage(False, False, False, False, False, True, True,
+                                            False, False), critical=True)
+               .sign(ca_key, hashes.SHA256()))
+    _write_key(key_path(out, CA), ca_key)
+    cert_path(out, CA).write_bytes(ca_cert.public_bytes(serialization.Encoding.PEM))
+    san = _san([*DEFAULT_HOSTS, *hosts])
+    for role in ROLES:
+        key = ec.generate_private_key(ec.SECP256R1())
+        usages = [ExtendedKeyUsageOID.CLIENT_AUTH]
+        if role != "client":  # servers; the garbler is also a client of the evaluator
+            usages.append(ExtendedKeyUsageOID.SERVER_AUTH)
+        builder = (_builder(_name(_PREFIX + role), ca_name, key, days)
+                   .add_extension(x509.BasicConstraints(ca=False, path_length=None),
+                                  critical=True)
+                   .add_extension(x509.ExtendedKeyUsage(usages), critical=False))
+        if role != "client":
+            builder = builder.add_extension(san, critical=False)
+        cert = builder.sign(ca_key, hashes.SHA256())
+        _write_key(key_path(out, role), key)
+        cert_path(out, role).write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    return out
+
+
+def _context(purpose: int, tls_dir: str | Path, role: str) -> ssl.SSLContext:
+    if role not in ROLES:
+        raise ValueError(f"role must be one of {ROLES}, got {role!r}")
+    for path in (cert_path(tls_dir, role), key_path(tls_dir, role), cert_path(tls_dir, CA)):
+        if not path.is_file():
+            raise FileNotFoundError(f"TLS file {path} is missing (create the directory with "
+                                    f"'snail-client certs DIR')")
+    ctx = ssl.SSLContext(purpose)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_3
+    ctx.maximum_version = ssl.TLSVersion.TLSv1_3
+    ctx.load_cert_chain(cert_path(tls_dir, role), key_path(tls_dir, role))
+    ctx.load_verify_locations(cert_path(tls_dir, CA))
+    ctx.verify_mode = ssl.CERT_REQUIRED
+    return ctx
+
+
+def server_context(tls_dir: str | Path, role: str) -> ssl.SSLContext:
+    """Server side of ``role``: TLS 1.3 only, client certificate required."""
+    return _context(ssl.PROTOCOL_TLS_SERVER, tls_dir, role)
+
+
+def client_context(tls_dir: str | Path, role: str) -> ssl.SSLContext:
+    """Connecting side of ``role``: TLS 1.3 only, server name and chain checked."""
+    ctx = _context(ssl.PROTOCOL_TLS_CLIENT, tls_dir, role)
+    ctx.check_hostname = True
+    return ctx
+
+
+def peer_role(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> str:
+    """The role in the verified peer certificate; ValueError if there is none."""
+    cert = ssl_object.getpeercert() if ssl_object is not None else None
+    if not cert:
+        raise ValueError("the peer presented no verified certificate")
+    subject = {k: v for rdn in cert.get("subject", ()) for k, v in rdn}
+    common = subject.get("commonName", "")
+    role = common[len(_PREFIX):] if common.startswith(_PREFIX) else ""
+    if subject.get("organizationName") != _ORG or role not in ROLES:
+        raise ValueError(f"the peer certificate names no snail role (subject {subject})")
+    return role

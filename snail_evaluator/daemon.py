@@ -1,0 +1,291 @@
+"""The evaluator daemon: evaluates garbled tables on the client's active input labels.
+
+Protocol (messages in snail_common.net.messages). Two kinds of peers connect:
+
+- a client (certificate role ``client``), one connection per localization: per
+  invocation it sends ``session_start`` {sid, circuit, hash} and its active input labels
+  (``input_labels`` chunks); it gets the active output labels (``output_labels`` chunks)
+  and a ``stats`` message, or an ``error`` {sid}. Its ``error`` {sid} cancels a session.
+- the garbler (role ``garbler``), over pooled connections carrying one session at a time:
+  ``session_start`` {sid, circuit, hash}, then ``tables`` {sid, data} frames until the
+  circuit's last AND gate; the evaluator answers ``done`` {sid}, or ``error`` {sid} and
+  closes the connection (the rest of a broken stream cannot be skipped safely).
+
+The two halves of a session meet by sid, in either order; both must name the same circuit
+and content hash as the evaluator's own compiled copy. Frames are evaluated as they
+arrive (in the worker pool), overlapping with the garbler producing the next ones; the
+connection reads at most a few frames ahead, so a session holds a few MiB beyond its
+wire labels. A session whose other half does not arrive, or whose stream stalls, for
+``--session-timeout`` seconds fails; so does one whose garbler connection breaks. The
+client always gets an ``error`` naming what happened, and the session is freed (see the
+``health`` counters). The evaluator never receives a seed or the offset delta.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from snail_common.circuit.ir import FIRST_INPUT
+from snail_common.gc import Evaluator, StreamError
+from snail_common.net import messages
+from snail_common.net.chunks import LabelAssembler, write_labels
+from snail_common.net.conn import Connection
+from snail_common.net.errors import (
+    ABORTED,
+    BAD_REQUEST,
+    DUPLICATE_SESSION,
+    PEER_LOST,
+    STREAM,
+    TIMEOUT,
+    UNEXPECTED,
+    ConnectionClosed,
+    ProtocolError,
+)
+from snail_common.net.logs import event
+from snail_common.net.service import Daemon, Options
+
+
+@dataclass(eq=False)
+class Session:
+    """One invocation, from whichever half arrives first until it is done or failed."""
+
+    sid: bytes
+    circuit: str
+    hash: str
+    ready: asyncio.Future  # the complete input labels, or the failure
+    client: Connection | None = None
+    garbler: bool = False
+    labels: LabelAssembler | None = None
+    failure: ProtocolError | None = None
+    started: float = field(default_factory=time.monotonic)
+    watchdog: asyncio.TimerHandle | None = None
+
+
+class EvaluatorDaemon(Daemon):
+    role = "evaluator"
+    allowed = ("client", "garbler")
+
+    def __init__(self, options: Options, logger: logging.Logger) -> None:
+        super().__init__(options, logger)
+        self.sessions: dict[bytes, Session] = {}
+
+    async def serve(self, conn: Connection) -> None:
+        try:
+            if conn.peer_role == "garbler":
+                await self._serve_garbler(conn)
+            else:
+                await self._serve_client(conn)
+        except ProtocolError as exc:
+            event(self.log, "protocol_error", logging.WARNING, peer=str(conn.peer),
+                  peer_role=conn.peer_role, code=exc.code, reason=exc.message)
+            await conn.close(messages.error(exc.code, exc.message))
+        except ConnectionClosed as exc:
+            event(self.log, "peer_gone", peer=str(conn.peer), peer_role=conn.peer_role,
+                  reason=str(exc))
+
+    # ---- session bookkeeping ---------------------------------------------------------------
+    def _open(self, msg: dict[str, Any]) -> Session:
+        self.admit()
+        s = Session(msg["sid"], msg["circuit"], msg["hash"],
+                    asyncio.get_running_loop().create_future())
+        s.ready.add_done_callback(_consume)
+        self.sessions[s.sid] = s
+        return s
+
+    def _arm(self, s: Session) -> None:
+        """Once this daemon has the circuit, the other half has ``session_timeout`` to
+        show up (compiling is not idleness: the watchdog starts after it)."""
+        if s.watchdog is None and s.failure is None:
+            s.watchdog = asyncio.get_running_loop().call_later(
+                self.options.session_timeout, self._expire, s)
+
+    def _expire(self, s: Session) -> None:
+        missing = "the garbler's table stream" if not s.garbler else "the client's input labels"
+        self._fail(s, ProtocolError(TIMEOUT, f"{missing} did not arrive within "
+                                             f"{self.options.session_timeout:g} s"))
+
+    def _fail(self, s: Session, exc: ProtocolError) -> None:
+        """End ``s`` with ``exc``: tell the client, wake the garbler side, free it."""
+        if self.sessions.get(s.sid) is not s:
+            return
+        del self.sessions[s.sid]
+        s.failure = exc
+        if s.watchdog:
+            s.watchdog.cancel()
+        if not s.ready.done():
+            s.ready.set_exception(exc)
+        if s.client is not None:
+            s.client.post(messages.error(exc.code, exc.message, s.sid))
+        self.finish(False)
+        event(self.log, "session_failed", logging.WARNING, sid=s.sid, circuit=s.circuit,
+              code=exc.code, reason=exc.message,
+              seconds=round(time.monotonic() - s.started, 4))
+
+    def _complete(self, s: Session) -> None:
+        del self.sessions[s.sid]
+        self.finish(True)
+
+    def _check_same(self, s: Session, msg: dict[str, Any]) -> None:
+        if (msg["circuit"], msg["hash"]) != (s.circuit, s.hash):
+            raise ProtocolError(BAD_REQUEST, f"client and garbler disagree on the circuit "
+                                             f"of this session ({s.circuit} vs "
+                                             f"{msg['circuit']})")
+
+    # ---- the client side -------------------------------------------------------------------
+    async def _serve_client(self, conn: Connection) -> None:
+        try:
+            while True:
+                msg, _ = await conn.recv()
+                kind = msg["t"]
+                if kind == "session_start":
+                    await self._client_start(conn, msg)
+                elif kind == "input_labels":
+                    self._client_labels(conn, msg)
+                elif kind == "error" and "sid" in msg:
+                    s = self.sessions.get(msg["sid"])
+                    if s is not None and s.client is conn:
+                        self._fail(s, ProtocolError(ABORTED, "cancelled by the client"))
+                elif kind == "health_request":
+                    await conn.send(self.health())
+                elif kind == "bye":
+                    return
+                else:
+                    raise ProtocolError(UNEXPECTED, f"a client may not send {kind} to the "
+                                                    "evaluator")
+        finally:
+            for s in [s for s in self.sessions.values() if s.client is conn]:
+                self._fail(s, ProtocolError(ABORTED, "the client disconnected"))
+
+    async def _client_start(self, conn: Connection, msg: dict[str, Any]) -> None:
+        sid = msg["sid"]
+        try:
+            s = self.sessions.get(sid)
+            if s is None:
+                s = self._open(msg)
+            elif s.client is not None:
+                raise ProtocolError(DUPLICATE_SESSION, "session id already in use")
+            else:
+                self._check_same(s, msg)
+            s.client = conn
+        except ProtocolError as exc:
+            conn.post(messages.error(exc.code, exc.message, sid))
+            return
+        try:
+            _, schedule = await self.circuit(msg["circuit"], msg["hash"])
+        except ProtocolError as exc:
+            self._fail(s, exc)
+            return
+        if s.failure is None:
+            s.labels = LabelAssembler("input_labels", FIRST_INPUT + schedule.n_inputs)
+            self._arm(s)
+
+    def _client_labels(self, conn: Connection, msg: dict[str, Any]) -> None:
+        s = self.sessions.get(msg["sid"])
+        if s is None or s.client is not conn:
+            conn.post(messages.error(UNEXPECTED, "input labels for no session of yours "
+                                                 "(never started, failed or finished)",
+                                     msg["sid"]))
+            return
+        try:
+            s.labels.add(msg)
+        except ProtocolError as exc:
+            self._fail(s, exc)
+            return
+        if s.labels.complete:
+            s.ready.set_result(s.labels.labels())
+
+    # ---- the garbler side ------------------------------------------------------------------
+    async def _serve_garbler(self, conn: Connection) -> None:
+        while True:
+            msg, size = await conn.recv()  # idle between sessions: no timeout
+            kind = msg["t"]
+            if kind == "session_start":
+                await self._garbler_session(conn, msg, size)
+            elif kind == "health_request":
+                await conn.send(self.health())
+            elif kind == "bye":
+                return
+            else:
+                raise ProtocolError(UNEXPECTED, f"the garbler sent {kind} outside a session")
+
+    async def _garbler_session(self, conn: Connection, msg: dict[str, Any],
+                               size: int) -> None:
+        sid = msg["sid"]
+        s = self.sessions.get(sid)
+        if s is None:
+            s = self._open(msg)  # the garbler came first; ProtocolError (busy) closes conn
+        elif s.garbler:
+            raise ProtocolError(DUPLICATE_SESSION, "session id already streaming")
+        s.garbler = True
+        received = size
+        t0 = time.monotonic()
+        try:
+            self._check_same(s, msg)
+            _, schedule = await self.circuit(msg["circuit"], msg["hash"])
+            self._arm(s)
+            labels = await s.ready  # the watchdog bounds this wait
+            if s.watchdog:
+                s.watchdog.cancel()
+            t_labels = time.monotonic()
+            self.counters["streaming"] += 1
+            try:
+                ev = Evaluator(schedule, labels)
+                received += await self._evaluate(conn, s, ev)
+            finally:
+                self.counters["streaming"] -= 1
+            t_done = time.monotonic()
+            outputs = ev.output_labels()
+        except ProtocolError as exc:
+            self._fail(s, exc)
+            raise ProtocolError(exc.code, exc.message) from None  # closes the garbler conn
+        except (ConnectionClosed, TimeoutError) as exc:
+            code = TIMEOUT if isinstance(exc, TimeoutError) else PEER_LOST
+            self._fail(s, ProtocolError(code, f"the garbler's table stream broke off: {exc}"))
+            raise ConnectionClosed(str(exc)) from None
+        except asyncio.CancelledError:
+            self._fail(s, ProtocolError(ABORTED, "the evaluator is shutting down"))
+            raise
+        if s.failure is not None:  # cancelled while the last frame was evaluated
+            raise ProtocolError(s.failure.code, s.failure.message)
+        self._complete(s)
+        conn.write(messages.make("done", sid=sid))
+        event(self.log, "session_done", sid=sid, circuit=s.circuit,
+              seconds=round(time.monotonic() - s.started, 4), garbler_to_evaluator=received)
+        try:
+            write_labels(s.client, "output_labels", sid, outputs)
+            s.client.write(messages.make(
+                "stats", sid=sid, traffic={"garbler_to_evaluator": received},
+                timing={"wait_s": t_labels - t0, "evaluate_s": t_done - t_labels}))
+            await s.client.drain()
+        except ConnectionClosed:
+            pass  # the client left after its labels arrived: nobody to tell
+        await conn.drain()
+
+    async def _evaluate(self, conn: Connection, s: Session, ev: Evaluator) -> int:
+        """Feed table frames to ``ev`` as they arrive; returns the bytes received."""
+        received, timeout = 0, self.options.session_timeout
+        while not ev.done:
+            msg, size = await conn.recv(timeout)
+            received += size
+            if s.failure is not None:
+                raise ProtocolError(s.failure.code, s.failure.message)
+            if msg["t"] == "error":
+                raise ProtocolError(msg["code"], f"the garbler reported: {msg['message']}")
+            if msg["t"] != "tables" or msg["sid"] != s.sid:
+                raise ProtocolError(UNEXPECTED, f"expected tables of this session, the "
+                                                f"garbler sent {msg['t']}")
+            try:
+                await self.work(ev.feed, msg["data"])
+            except StreamError as exc:
+                raise ProtocolError(STREAM, str(exc)) from None
+        return received
+
+
+def _consume(future: asyncio.Future) -> None:
+    """Mark a failure as seen when no garbler half waits for it."""
+    if not future.cancelled():
+        future.exception()

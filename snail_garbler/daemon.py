@@ -1,0 +1,259 @@
+"""The garbler daemon: garbles circuits from client-chosen seeds and streams the tables.
+
+Protocol (messages in snail_common.net.messages). A client keeps one TLS connection open
+for a whole localization and sends one ``garble_request`` {sid, circuit, hash, seed, delta,
+key} per invocation; requests run concurrently (up to ``--max-sessions``). For each:
+
+1. compile (once per daemon, cached) the circuit and check the client's content hash;
+2. take a TLS connection to the evaluator from the pool (or open one, authenticating
+   with the garbler certificate), send ``session_start`` {sid, circuit, hash} and then the
+   garbled tables as ``tables`` {sid, data} frames of ~1 MiB. Garbling of frame k+1 runs in
+   the worker pool while frame k is written; ``drain`` stops the garbler when the
+   evaluator falls behind, so a session holds a few MiB at most;
+3. send the client the output zero-labels (``output_zero_labels`` chunks) and a ``stats``
+   message with the bytes sent to the evaluator and timings;
+4. wait for the evaluator's ``done`` {sid} before the connection goes back to the pool; an
+   ``error`` instead (or any failure mid-stream) closes that connection, since a cut
+   stream cannot be resumed.
+
+Failures reach the client as ``error`` {sid, code, message}. A client's ``error`` {sid}
+cancels its session; a client that disconnects cancels all of its sessions. The garbler
+never receives input labels.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import logging
+import time
+from typing import Any
+
+from snail_common.circuit.schedule import Schedule
+from snail_common.gc import Garbler, check_delta
+from snail_common.net import messages
+from snail_common.net.chunks import write_labels
+from snail_common.net.conn import Connection, connect
+from snail_common.net.errors import (
+    BAD_REQUEST,
+    DUPLICATE_SESSION,
+    INTERNAL,
+    PEER_LOST,
+    TIMEOUT,
+    UNEXPECTED,
+    ConnectionClosed,
+    ProtocolError,
+    RemoteError,
+)
+from snail_common.net.logs import event
+from snail_common.net.service import Daemon, Options
+
+MAX_IDLE = 8  # pooled idle connections to the evaluator
+INLINE_INPUTS = 1 << 14
+# frame sizing: aim for a frame every ~2 ms of garbling so that the evaluator overlaps
+# even small or narrow circuits; the engine cost model is per AND gate plus per step
+FRAME_SECONDS = 2e-3
+AND_SECONDS = 120e-9
+STEP_SECONDS = 15e-6
+MIN_FRAME, MAX_FRAME_BYTES = 4 << 10, 1 << 20
+BYTES_PER_AND = 32
+
+
+def frame_plan(schedule: Schedule) -> tuple[int, int]:
+    """(block_gates, frame_bytes) for garbling ``schedule``: about FRAME_SECONDS of work
+    per frame, between 4 KiB and 1 MiB; blocks of at most 8192 gates fill a frame."""
+    seconds = schedule.n_and * AND_SECONDS + schedule.n_steps * STEP_SECONDS
+    frames = max(1.0, seconds / FRAME_SECONDS)
+    size = int(min(MAX_FRAME_BYTES, max(MIN_FRAME, BYTES_PER_AND * schedule.n_and / frames)))
+    block = 1 << max(7, min(13, (size // BYTES_PER_AND).bit_length() - 1))
+    return block, max(size, block * BYTES_PER_AND)
+
+
+class GarblerDaemon(Daemon):
+    role = "garbler"
+    allowed = ("client",)
+
+    def __init__(self, options: Options, logger: logging.Logger,
+                 evaluator: tuple[str, int], client_ctx) -> None:
+        super().__init__(options, logger)
+        self.evaluator = evaluator
+        self.client_ctx = client_ctx  # TLS context for the link to the evaluator
+        self.idle: list[Connection] = []
+
+    async def serve(self, conn: Connection) -> None:
+        tasks: dict[bytes, asyncio.Task] = {}
+        try:
+            while True:
+                msg, _ = await conn.recv()
+                kind = msg["t"]
+                if kind == "garble_request":
+                    self._start(conn, msg, tasks)
+                elif kind == "error" and "sid" in msg:
+                    task = tasks.get(msg["sid"])
+                    if task is not None:
+                        task.cancel()
+                elif kind == "health_request":
+                    await conn.send(self.health())
+                elif kind == "bye":
+                    return
+                else:
+                    raise ProtocolError(UNEXPECTED, f"a client may not send {kind} to the "
+                                                    "garbler")
+        except ProtocolError as exc:
+            event(self.log, "protocol_error", logging.WARNING, peer=str(conn.peer),
+                  code=exc.code, reason=exc.message)
+            await conn.close(messages.error(exc.code, exc.message))
+        except ConnectionClosed as exc:
+            event(self.log, "client_gone", peer=str(conn.peer), reason=str(exc))
+        finally:
+            for task in tasks.values():
+                task.cancel()
+            await asyncio.gather(*tasks.values(), return_exceptions=True)
+
+    def _start(self, conn: Connection, req: dict[str, Any],
+               tasks: dict[bytes, asyncio.Task]) -> None:
+        sid = req["sid"]
+        if sid in tasks:
+            conn.post(messages.error(DUPLICATE_SESSION, "session id already in use", sid))
+            return
+        task = asyncio.get_running_loop().create_task(self._session(conn, req))
+        tasks[sid] = task
+        task.add_done_callback(lambda _: tasks.pop(sid, None))
+
+    async def _session(self, client: Connection, req: dict[str, Any]) -> None:
+        sid, t0 = req["sid"], time.monotonic()
+        ok, sent = False, 0
+        try:
+            self.admit()  # here, not in _start: a task cancelled unstarted holds no slot
+        except ProtocolError as exc:
+            self._fail(client, sid, exc.code, exc.message)
+            return
+        try:
+            _, schedule = await self.circuit(req["circuit"], req["hash"])
+            try:
+                check_delta(req["delta"])
+            except ValueError as exc:
+                raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
+            block, frame = frame_plan(schedule)
+            make = functools.partial(Garbler, schedule, req["seed"], req["delta"], req["key"],
+                                     block_gates=block, frame_bytes=frame)
+            # deriving the input labels is AES over the inputs: inline unless large
+            garbler = make() if schedule.n_inputs < INLINE_INPUTS else await self.work(make)
+            t_ready = time.monotonic()
+            evaluator = await self._acquire()
+            try:
+                self.counters["streaming"] += 1
+                try:
+                    sent, answered = await self._stream(evaluator, garbler, req)
+                finally:
+                    self.counters["streaming"] -= 1
+                t_streamed = time.monotonic()
+                delivered = self._reply(client, sid, garbler, sent, {
+                    "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready})
+                if not answered:  # the client need not wait for this
+                    await self._verdict(evaluator, sid)
+            except BaseException:
+                evaluator.abort()
+                raise
+            self._release(evaluator)
+            ok = True
+            if delivered:
+                with contextlib.suppress(ConnectionClosed):
+                    await client.drain()
+        except ProtocolError as exc:
+            self._fail(client, sid, exc.code, exc.message)
+        except RemoteError as exc:
+            self._fail(client, sid, exc.code, f"the evaluator reported: {exc.message}")
+        except ConnectionClosed as exc:
+            self._fail(client, sid, PEER_LOST, f"lost the evaluator: {exc}")
+        except TimeoutError as exc:
+            self._fail(client, sid, TIMEOUT, str(exc))
+        except Exception as exc:  # a bug: the client must still hear of it
+            self.log.exception("session_bug", extra={"snail_fields": {"sid": sid.hex()}})
+            self._fail(client, sid, INTERNAL, f"internal error in the garbler: {exc!r}")
+        finally:
+            self.finish(ok)
+            event(self.log, "session_done" if ok else "session_failed", sid=sid,
+                  circuit=req["circuit"], seconds=round(time.monotonic() - t0, 4),
+                  garbler_to_evaluator=sent)
+
+    def _reply(self, client: Connection, sid: bytes, garbler: Garbler, sent: int,
+               timing: dict[str, float]) -> bool:
+        """Queue the output zero-labels and stats for the client; False if it is gone."""
+        try:
+            write_labels(client, "output_zero_labels", sid, garbler.output_zero_labels)
+            client.write(messages.make("stats", sid=sid,
+                                       traffic={"garbler_to_evaluator": sent}, timing=timing))
+        except ConnectionClosed:
+            event(self.log, "client_gone", sid=sid, reason="before its result was sent")
+            return False
+        return True
+
+    def _fail(self, client: Connection, sid: bytes, code: str, message: str) -> None:
+        event(self.log, "session_error", logging.WARNING, sid=sid, code=code, reason=message)
+        client.post(messages.error(code, message, sid))
+
+    async def _stream(self, evaluator: Connection, garbler: Garbler,
+                      req: dict[str, Any]) -> tuple[int, bool]:
+        """Send session_start and every table frame; garbling of the next frame overlaps
+        the sending of this one. Returns the bytes sent and whether the evaluator has
+        already answered ``done`` (it may finish before the garbler's loop does)."""
+        sid, timeout = req["sid"], self.options.session_timeout
+        sent = evaluator.write(messages.make("session_start", sid=sid, circuit=req["circuit"],
+                                             hash=req["hash"]))
+        frames = garbler.frames()
+        pending = self.submit(next, frames, None)
+        answered = False
+        try:
+            while (data := await pending) is not None:
+                if answered:
+                    raise ProtocolError(UNEXPECTED, "the evaluator finished before the "
+                                                    "last table frame")
+                pending = self.submit(next, frames, None)
+                sent += evaluator.write(messages.make("tables", sid=sid, data=data))
+                try:
+                    await asyncio.wait_for(evaluator.drain(), timeout)
+                except asyncio.TimeoutError:
+                    raise TimeoutError(f"the evaluator took no tables for {timeout:g} s") \
+                        from None
+                if not evaluator.idle:  # the evaluator spoke: done, or it gave up
+                    await self._verdict(evaluator, sid)
+                    answered = True
+        finally:
+            if not pending.done():  # let the garbling thread finish with the generator
+                await asyncio.gather(pending, return_exceptions=True)
+        return sent, answered
+
+    async def _verdict(self, evaluator: Connection, sid: bytes) -> None:
+        """The evaluator's answer for ``sid``: ``done`` returns, ``error`` raises (a
+        ``bye`` means it is shutting down)."""
+        msg, _ = await evaluator.recv(self.options.session_timeout)
+        if msg["t"] == "error":
+            raise RemoteError(msg["code"], msg["message"], msg.get("sid"))
+        if msg["t"] == "bye":
+            raise ConnectionClosed("the evaluator is shutting down")
+        if msg["t"] != "done":
+            raise ProtocolError(UNEXPECTED, f"the evaluator sent {msg['t']} mid-session")
+        if msg["sid"] != sid:
+            raise ProtocolError(UNEXPECTED, "the evaluator finished another session")
+
+    async def _acquire(self) -> Connection:
+        while self.idle:
+            conn = self.idle.pop()
+            if conn.idle:
+                return conn
+            await conn.close()  # something arrived while idle (a bye): not reusable
+        return await connect(*self.evaluator, self.client_ctx, "garbler", "evaluator",
+                             self.options.handshake_timeout)
+
+    def _release(self, conn: Connection) -> None:
+        if conn.idle and len(self.idle) < MAX_IDLE and not self.stopping.is_set():
+            self.idle.append(conn)
+        else:
+            conn.abort()
+
+    async def shutdown_extra(self) -> None:
+        await asyncio.gather(*(c.close(messages.make("bye")) for c in self.idle),
+                             return_exceptions=True)
+        self.idle.clear()

@@ -1,0 +1,64 @@
+"""Circuit ids: strict parsing, the ops family against numpy, caching by id."""
+
+import numpy as np
+import pytest
+
+from snail_common.arith import mirror
+from snail_common.circuit import evaluate, registry
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("SNAIL_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(registry, "_lru", type(registry._lru)())
+
+
+@pytest.mark.parametrize("bad", [
+    "", "fadd-x4", "ops/", "ops/fadd", "ops/fadd-x0", "ops/fadd-x4097", "ops/fadd-x01",
+    "ops/fnope-x4", "ops/fadd-x4/..", "../ops/fadd-x4", "OPS/fadd-x4", "zk/fadd-x4",
+    "ops/fadd-x4 ", "loc/../../etc", "ops/" + "a" * 200, 7,
+])
+def test_malformed_or_unknown_ids_are_refused(bad):
+    with pytest.raises(registry.UnknownCircuit):
+        registry.compiled(bad)
+
+
+def test_unknown_family_message_lists_the_known_ones():
+    with pytest.raises(registry.UnknownCircuit, match="known: ops, loc"):
+        registry.check_id("zk/thing")
+
+
+@pytest.mark.parametrize("op, fn", [("fadd", mirror.add), ("fmul", mirror.mul),
+                                    ("fdiv", mirror.div), ("flt", mirror.lt)])
+def test_ops_circuits_compute_the_op(op, fn):
+    circuit, schedule = registry.compiled(f"ops/{op}-x5")
+    rng = np.random.default_rng(3)
+    x = (rng.standard_normal(5) * 100).astype(np.float32)
+    y = (rng.standard_normal(5) * 100).astype(np.float32)
+    z = evaluate(circuit, {"x": x, "y": y}, schedule)["z"]
+    np.testing.assert_array_equal(z, fn(x, y))
+    assert [g.name for g in circuit.inputs] == ["x", "y"]
+    assert circuit.inputs[0].shape == (5,)
+
+
+def test_unary_op_has_one_input():
+    circuit, _ = registry.compiled("ops/fsqrt-x2")
+    assert [g.name for g in circuit.inputs] == ["x"]
+
+
+def test_compiled_once_then_served_from_memory_and_disk(tmp_path, monkeypatch):
+    first = registry.compiled("ops/fadd-x2")
+    assert registry.compiled("ops/fadd-x2") is first
+    assert registry.lookup("ops/fadd-x2") is first
+    assert list(tmp_path.glob("ops-v*-fadd-x2.npz"))
+    monkeypatch.setattr(registry, "_lru", type(registry._lru)())
+    assert registry.lookup("ops/fadd-x2") is None
+    again = registry.compiled("ops/fadd-x2")  # from the disk cache
+    assert again[0].content_hash() == first[0].content_hash()
+
+
+def test_lru_keeps_a_few_circuits():
+    for k in range(1, registry.LRU_SIZE + 2):
+        registry.compiled(f"ops/fadd-x{k}")
+    assert registry.lookup("ops/fadd-x1") is None
+    assert registry.lookup(f"ops/fadd-x{registry.LRU_SIZE + 1}") is not None

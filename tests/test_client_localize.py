@@ -1,0 +1,80 @@
+"""snail-client localize through real daemons (separate processes, TLS): the garbled
+result is bit-identical to the cleartext circuit's, padding reaches --min-invocations,
+traffic is measured, and bad input exits 2 naming the field."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+from shared_paths import EXAMPLES
+
+from snail_client.embedded import embedded_services
+from snail_client.localize import Options, localize
+from snail_client.secure import SecureRunner
+from snail_common.loc.problem import load_problem
+
+SMALL_EXAMPLES = ["apriltag_4corners.json", "synthetic_n6.json", "synthetic_n12.json"]
+
+
+@pytest.fixture(scope="module")
+def runner():
+    with embedded_services() as services, SecureRunner(
+            services.garbler_addr, services.evaluator_addr, services.tls_dir) as secure:
+        yield secure
+
+
+@pytest.mark.parametrize("name", SMALL_EXAMPLES)
+def test_garbled_pose_equals_cleartext_pose(runner, name):
+    problem = load_problem(EXAMPLES / name)
+    garbled = localize(problem, Options(backend="garbled", min_invocations=0), runner)
+    clear = localize(problem, Options(backend="cleartext"))
+    assert garbled["rvec"] == clear["rvec"] and garbled["tvec"] == clear["tvec"]
+    assert garbled["cost"] == clear["cost"] and garbled["converged"]
+    assert garbled["invocations"] == clear["invocations"] >= garbled["iterations"]
+    tables = garbled["traffic"]["garbler_to_evaluator"]
+    assert tables >= 32 * garbled["circuit"]["and"] * garbled["invocations"]
+
+
+def test_session_is_padded_to_min_invocations(runner):
+    problem = load_problem(EXAMPLES / "synthetic_n6.json")
+    result = localize(problem, Options(backend="garbled", min_invocations=7), runner)
+    assert result["invocations"] == 7 > result["iterations"]
+    assert len(result["timing"]["per_iteration_s"]) < 7  # padding is not an iteration
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "snail_client", *args],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_cli_json_result_float64():
+    out = _cli("localize", "--input", str(EXAMPLES / "synthetic_n6.json"),
+               "--backend", "float64", "--json")
+    assert out.returncode == 0, out.stderr
+    record = json.loads(out.stdout)
+    assert record["format"] == "snail-result/1" and record["converged"]
+    assert record["rms_px"] < 1.0
+
+
+@pytest.mark.parametrize(("patch", "field"), [
+    ({"points2d": [[1.0, 2.0]] * 3, "points3d": [[0.0, 0.0, 1.0]] * 3}, "points2d"),
+    ({"points3d": "nope"}, "points3d"),
+    ({"initial_pose": {"rvec": [0, 0, 0]}}, "initial_pose.tvec"),
+])
+def test_cli_bad_problem_exits_2_naming_the_field(tmp_path, patch, field):
+    problem = json.loads((EXAMPLES / "synthetic_n6.json").read_text())
+    problem.update(patch)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(problem))
+    out = _cli("localize", "--input", str(path), "--backend", "float64")
+    assert out.returncode == 2
+    assert field in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def test_cli_half_remote_addresses_is_a_usage_error():
+    out = _cli("localize", "--input", str(EXAMPLES / "synthetic_n6.json"),
+               "--garbler", "127.0.0.1:1")
+    assert out.returncode == 2 and "--tls-dir" in out.stderr

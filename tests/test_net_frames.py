@@ -1,0 +1,155 @@
+"""Framing and message validation: strict decoding, incremental reading, no copies lost."""
+
+import struct
+
+import msgpack
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from snail_common.net import errors, messages
+from snail_common.net.frames import (
+    MAX_FRAME,
+    PROTOCOL_VERSION,
+    FrameReader,
+    decode,
+    encode,
+    encode_bytes,
+)
+
+SID = bytes(range(16))
+HASH = "ab" * 32
+
+
+def body(obj) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def code_of(data: bytes) -> str:
+    with pytest.raises(errors.ProtocolError) as info:
+        decode(data)
+    return info.value.code
+
+
+def sample_messages():
+    return [
+        messages.make("hello", role="client", software="t", max_frame=MAX_FRAME),
+        messages.make("session_start", sid=SID, circuit="ops/fadd-x4", hash=HASH),
+        messages.make("garble_request", sid=SID, circuit="ops/fadd-x4", hash=HASH,
+                      seed=bytes(16), delta=b"\x01" + bytes(15), key=bytes(16)),
+        messages.make("input_labels", sid=SID, start=0, total=3, labels=bytes(48)),
+        messages.make("tables", sid=SID, data=bytes(range(256)) * 300),
+        messages.make("stats", sid=SID, traffic={"garbler_to_evaluator": 5},
+                      timing={"garble_s": 0.5}),
+        messages.make("health", role="evaluator", sessions={"active": 1}, uptime_s=1.0),
+        messages.error("timeout", "slow", SID),
+        messages.make("bye"),
+    ]
+
+
+def test_roundtrip_of_every_sample_and_big_binaries_are_separate_buffers():
+    for msg in sample_messages():
+        frame = encode_bytes(msg)
+        (length,) = struct.unpack(">I", frame[:4])
+        assert length == len(frame) - 4
+        assert decode(frame[4:]) == msg
+    tables = sample_messages()[4]
+    parts = encode(tables)
+    assert any(p is tables["data"] for p in parts)  # not copied into the frame
+    assert b"".join(parts)[4:] == body({"v": PROTOCOL_VERSION, **tables})
+
+
+@pytest.mark.parametrize("data, code", [
+    (b"\xc1", errors.MALFORMED),  # never-used msgpack byte
+    (body([1, 2]), errors.MALFORMED),  # not a map
+    (body({"v": 1, "t": "bye"})[:-1], errors.MALFORMED),  # truncated
+    (body({"v": 1, "t": "bye"}) + b"\x00", errors.MALFORMED),  # trailing bytes
+    (body({"t": "bye"}), errors.VERSION),
+    (body({"v": 99, "t": "bye"}), errors.VERSION),
+    (body({"v": 1}), errors.MISSING_FIELD),
+    (body({"v": 1, "t": "launch"}), errors.UNKNOWN_TYPE),
+    (body({"v": 1, "t": "done"}), errors.MISSING_FIELD),
+    (body({"v": 1, "t": "bye", "extra": 1}), errors.UNKNOWN_FIELD),
+    (body({"v": 1, "t": "done", "sid": "0123456789abcdef"}), errors.MALFORMED),  # str
+    (body({"v": 1, "t": "done", "sid": bytes(15)}), errors.MALFORMED),
+    (body({"v": 1, "t": "input_labels", "sid": SID, "start": -1, "total": 1,
+           "labels": bytes(16)}), errors.MALFORMED),
+    (body({"v": 1, "t": "input_labels", "sid": SID, "start": 0, "total": 1,
+           "labels": bytes(15)}), errors.MALFORMED),
+    (body({"v": 1, "t": "session_start", "sid": SID, "circuit": "x", "hash": "AB" * 32}),
+     errors.MALFORMED),
+    (body({"v": 1, "t": "hello", "role": "admin", "software": "x", "max_frame": 1}),
+     errors.MALFORMED),
+    (body({"v": 1, "t": "stats", "sid": SID, "traffic": {"a": 1.5}, "timing": {}}),
+     errors.MALFORMED),
+    (body({"v": 1, "t": "stats", "sid": SID, "traffic": {}, "timing": {"a": float("nan")}}),
+     errors.MALFORMED),
+    (body({"v": 1, "t": "done", "sid": msgpack.ExtType(1, SID)}), errors.MALFORMED),
+    (body({"v": 1, "t": "bye", 5: 1}), errors.MALFORMED),  # non-string key
+    (b"\x82\xa1v\x01\xa1v\x01", errors.MALFORMED),  # duplicate key
+])
+def test_strict_decoding_names_the_problem(data, code):
+    assert code_of(data) == code
+
+
+def test_error_messages_name_the_field():
+    with pytest.raises(errors.ProtocolError, match="'sid'"):
+        decode(body({"v": 1, "t": "done", "sid": bytes(3)}))
+    with pytest.raises(errors.ProtocolError, match="lacks field 'hash'"):
+        decode(body({"v": 1, "t": "session_start", "sid": SID, "circuit": "x"}))
+
+
+def test_timestamps_and_pickle_like_payloads_are_rejected():
+    ts = msgpack.packb({"v": 1, "t": "done", "sid": msgpack.Timestamp(1, 0)})
+    assert code_of(ts) == errors.MALFORMED
+    pickled = b"\x80\x04\x95" + bytes(20)  # a pickle stream is not msgpack we accept
+    assert code_of(pickled) == errors.MALFORMED
+
+
+def test_encode_refuses_oversized_frames():
+    with pytest.raises(errors.ProtocolError) as info:
+        encode(messages.make("tables", sid=SID, data=bytes(MAX_FRAME)))
+    assert info.value.code == errors.OVERSIZE
+
+
+def feed(reader: FrameReader, stream: bytes, cuts: list[int]) -> list:
+    """Write ``stream`` through reader.buffer() in pieces of the given sizes."""
+    out, pos = [], 0
+    sizes = iter(cuts)
+    while pos < len(stream):
+        buf = reader.buffer()
+        n = min(len(buf), len(stream) - pos, max(1, next(sizes, len(stream))))
+        buf[:n] = stream[pos : pos + n]
+        buf.release()
+        pos += n
+        out += [m for m, _ in reader.filled(n)]
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(0, 8), min_size=1, max_size=12),
+       st.lists(st.integers(1, 300_000), max_size=40))
+def test_reader_reassembles_frames_cut_anywhere(picks, cuts):
+    pool = sample_messages()
+    sent = [pool[i] for i in picks]
+    stream = b"".join(encode_bytes(m) for m in sent)
+    reader = FrameReader()
+    assert feed(reader, stream, cuts) == sent
+    assert not reader.partial
+
+
+def test_reader_refuses_an_oversized_frame_from_its_header():
+    reader = FrameReader(max_frame=1000)
+    buf = reader.buffer()
+    buf[:4] = struct.pack(">I", 1001)
+    buf.release()
+    with pytest.raises(errors.ProtocolError) as info:
+        reader.filled(4)
+    assert info.value.code == errors.OVERSIZE
+
+
+def test_reader_reports_a_partial_frame():
+    frame = encode_bytes(sample_messages()[4])
+    reader = FrameReader()
+    feed(reader, frame[:-1], [])
+    assert reader.partial

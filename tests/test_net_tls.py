@@ -1,0 +1,78 @@
+"""Certificates: one CA, one certificate per role, roles readable from a verified peer."""
+
+import contextlib
+import ipaddress
+import ssl
+import stat
+
+import pytest
+from click.testing import CliRunner
+from cryptography import x509
+
+from snail_client.cli import main
+from snail_common.net import tls
+
+
+@pytest.fixture(scope="module")
+def tls_dir(tmp_path_factory):
+    return tls.make_certs(tmp_path_factory.mktemp("tls"), hosts=["garbler", "10.0.0.7"])
+
+
+def load(tls_dir, name) -> x509.Certificate:
+    return x509.load_pem_x509_certificate(tls.cert_path(tls_dir, name).read_bytes())
+
+
+def test_files_and_key_permissions(tls_dir):
+    for name in ("ca", "garbler", "evaluator", "client"):
+        assert tls.cert_path(tls_dir, name).is_file()
+        assert stat.S_IMODE(tls.key_path(tls_dir, name).stat().st_mode) == 0o600
+
+
+def test_server_names_include_loopback_and_extra_hosts(tls_dir):
+    san = load(tls_dir, "garbler").extensions.get_extension_for_class(
+        x509.SubjectAlternativeName).value
+    assert {"localhost", "garbler"} <= set(san.get_values_for_type(x509.DNSName))
+    assert {ipaddress.ip_address("127.0.0.1"), ipaddress.ip_address("10.0.0.7")} <= set(
+        san.get_values_for_type(x509.IPAddress))
+
+
+def test_contexts_are_tls13_only_with_mutual_auth(tls_dir):
+    server = tls.server_context(tls_dir, "evaluator")
+    client = tls.client_context(tls_dir, "client")
+    for ctx in (server, client):
+        assert ctx.minimum_version == ctx.maximum_version == ssl.TLSVersion.TLSv1_3
+        assert ctx.verify_mode == ssl.CERT_REQUIRED
+    assert client.check_hostname
+
+
+@pytest.mark.parametrize("role", ["garbler", "evaluator", "client"])
+def test_peer_role_comes_from_the_verified_certificate(tls_dir, role):
+    server = tls.server_context(tls_dir, "evaluator")
+    client = tls.client_context(tls_dir, role)
+    c_in, c_out, s_in, s_out = (ssl.MemoryBIO() for _ in range(4))
+    c = client.wrap_bio(c_in, c_out, server_hostname="localhost")
+    s = server.wrap_bio(s_in, s_out, server_side=True)
+    for _ in range(6):  # handshake over memory BIOs
+        for side in (c, s):
+            with contextlib.suppress(ssl.SSLWantReadError):
+                side.do_handshake()
+        s_in.write(c_out.read())
+        c_in.write(s_out.read())
+    assert tls.peer_role(s) == role
+    assert tls.peer_role(c) == "evaluator"
+
+
+def test_missing_files_are_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"garbler\.pem"):
+        tls.server_context(tmp_path, "garbler")
+    with pytest.raises(ValueError, match="role"):
+        tls.server_context(tmp_path, "mallory")
+
+
+def test_certs_command(tmp_path):
+    out = tmp_path / "certs"
+    result = CliRunner().invoke(main, ["certs", str(out), "--host", "evaluator"])
+    assert result.exit_code == 0, result.output
+    assert tls.cert_path(out, "client").is_file()
+    again = CliRunner().invoke(main, ["certs", str(out)])
+    assert again.exit_code == 2 and "already holds keys" in again.output
