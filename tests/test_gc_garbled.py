@@ -1,6 +1,8 @@
 """Garbled runs decode to exactly the cleartext evaluation of the same schedule."""
 
 import itertools
+import tracemalloc
+import zlib
 
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ from shared_paths import BRISTOL
 
 from snail_common.circuit import CircuitBuilder, evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import load_bristol
+from snail_common.circuit.schedule import Schedule
 from snail_common.gc import (
     Evaluator,
     Garbler,
@@ -19,6 +22,7 @@ from snail_common.gc import (
     fresh_seed,
     garbled_run,
 )
+from snail_common.gc.plan import AndPlan, _ReadRows, plan_for
 
 
 @st.composite
@@ -93,16 +97,34 @@ def test_stream_cut_anywhere(circuit, cuts):
     assert np.array_equal(got, evaluate_bits(schedule, bits[None])[0])
 
 
-def test_wide_steps_span_blocks_and_frames():
-    """Steps wider than a block reuse their own operand slots; frames cut between blocks."""
-    count = 3000
+def test_stream_fed_in_small_reads():
+    """Reads much smaller than a block: each cut block is assembled once, then evaluated."""
+    schedule = schedule_circuit(wide_and_layers(700, 2))
+    bits = np.random.default_rng(9).integers(0, 2, schedule.n_inputs).astype(bool)
+    seed, delta = fresh_seed(), fresh_delta()
+    garbler = Garbler(schedule, seed, delta, block_gates=256)
+    stream = memoryview(b"".join(garbler.frames()))
+    ev = Evaluator(schedule, active_input_labels(seed, delta, bits))
+    for pos in range(0, len(stream), 1000):
+        ev.feed(stream[pos : pos + 1000])
+    got = decode_output_labels(delta, garbler.output_zero_labels, ev.output_labels())
+    assert np.array_equal(got, evaluate_bits(schedule, bits[None])[0])
+
+
+def wide_and_layers(count: int, layers: int):
+    """``count`` independent lanes of ``layers`` AND levels with XOR logic between them."""
     b = CircuitBuilder()
     x = b.input("x", (count, 4), 1)[..., 0]
     acc = x[:, 0]
-    for i in range(1, 4):
-        acc = b.and_(b.xor(acc, x[:, i]), b.or_(acc, x[:, (i + 1) % 4]))
+    for i in range(1, layers + 1):
+        acc = b.and_(b.xor(acc, x[:, i % 4]), b.or_(acc, x[:, (i + 1) % 4]))
     b.output("y", acc[:, None])
-    schedule = schedule_circuit(b.build())
+    return b.build()
+
+
+def test_wide_steps_span_blocks_and_frames():
+    """Steps wider than a block reuse their own operand slots; frames cut between blocks."""
+    schedule = schedule_circuit(wide_and_layers(3000, 3))
     bits = np.random.default_rng(7).integers(0, 2, (2, schedule.n_inputs)).astype(bool)
     expect = evaluate_bits(schedule, bits)
     for row, want in zip(bits, expect):
@@ -159,7 +181,111 @@ def test_bristol_files_present():
 def test_bristol_garbled_matches_cleartext(path):
     circuit = load_bristol(path)
     schedule = schedule_circuit(circuit)
-    rng = np.random.default_rng(abs(hash(path.stem)) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(path.stem.encode()))
     bits = rng.integers(0, 2, (3, circuit.n_inputs)).astype(bool)
     bits[0] = False  # all-zero inputs exercise the constant paths
     assert np.array_equal(garbled_run(schedule, bits), evaluate_bits(schedule, bits))
+
+
+def in_place_schedule() -> Schedule:
+    """A hand-made schedule whose steps write the very slots they read (an allocator may do
+    that: executors read a whole step before writing it), so the plan cannot write as it
+    goes. Inputs x0..x5 sit in slots 2..7."""
+    and_out = np.array([2, 3, 4, 5, 6, 3, 2], np.int32)  # step 1: 5 gates, step 3: 2 gates
+    and_a = np.array([2, 3, 4, 5, 6, 2, 4], np.int32)
+    and_b = np.array([7, 6, 5, 4, 3, 3, 3], np.int32)
+    lin_out = np.array([4, 5, 7], np.int32)  # step 0 (ragged) and step 2 (2 terms each)
+    lin_ptr = np.array([0, 2, 5, 7], np.int64)
+    lin_terms = np.array([2, 4, 3, 5, 1, 2, 7], np.int32)
+    return Schedule(6, 8, np.array([0, 1, 0, 1], np.uint8), np.array([0, 0, 2, 5], np.int64),
+                    np.array([2, 5, 3, 7], np.int64), and_out, and_a, and_b, lin_out, lin_ptr,
+                    lin_terms, np.array([2, 3, 4, 5, 7], np.int32))
+
+
+def test_steps_that_overwrite_their_own_operands():
+    schedule = in_place_schedule()
+    plan = plan_for(schedule)
+    assert not any(step.direct for step in plan.steps if isinstance(step, AndPlan))
+    bits = np.random.default_rng(11).integers(0, 2, (16, 6)).astype(bool)
+    bits[0] = True
+    expect = evaluate_bits(schedule, bits)
+    assert len({tuple(row) for row in expect}) > 1
+    for row, want in zip(bits, expect):
+        for block in (1, 2, 8):
+            assert np.array_equal(run(schedule, row, block_gates=block), want)
+
+
+def contiguous_schedule() -> Schedule:
+    """A hand-made schedule whose outputs and some operands are runs of consecutive slots,
+    none of them read by the step writing them. Inputs x0..x5 sit in slots 2..7."""
+    and_out = np.array([11, 12, 13, 14, 5, 6, 7], np.int32)
+    and_a = np.array([8, 9, 10, 2, 2, 3, 4], np.int32)
+    and_b = np.array([3, 4, 5, 6, 11, 12, 13], np.int32)
+    lin_out = np.array([8, 9, 10, 2, 3, 4], np.int32)
+    lin_ptr = np.array([0, 2, 4, 6, 9, 11, 13], np.int64)
+    lin_terms = np.array([2, 3, 4, 5, 6, 1, 11, 12, 13, 14, 1, 11, 7], np.int32)
+    return Schedule(6, 15, np.array([0, 1, 0, 1], np.uint8), np.array([0, 0, 3, 4], np.int64),
+                    np.array([3, 4, 6, 7], np.int64), and_out, and_a, and_b, lin_out, lin_ptr,
+                    lin_terms, np.array([5, 6, 7, 14], np.int32))
+
+
+def test_contiguous_outputs_are_written_in_place():
+    schedule = contiguous_schedule()
+    lin0, and1, _, and3 = plan_for(schedule).steps
+    assert lin0.direct and and1.direct and and3.direct
+    assert lin0.groups[0].out == slice(8, 11)
+    assert (and1.out, and1.b, and3.out, and3.a, and3.b) == (
+        slice(11, 15), slice(3, 7), slice(5, 8), slice(2, 5), slice(11, 14))
+    bits = np.random.default_rng(12).integers(0, 2, (16, 6)).astype(bool)
+    expect = evaluate_bits(schedule, bits)
+    assert len({tuple(row) for row in expect}) > 1
+    for row, want in zip(bits, expect):
+        for block in (1, 2, 3, 8):
+            assert np.array_equal(run(schedule, row, block_gates=block), want)
+
+
+def test_memory_is_live_slots_plus_a_frame():
+    """Garbling and evaluating a long, narrow circuit frame by frame holds its live labels,
+    fixed-size scratch and a frame, never the garbled circuit (here 1.2 MB of tables)."""
+    schedule = schedule_circuit(wide_and_layers(64, 300))
+    plan_for(schedule)  # the plan is per circuit, like the schedule: built before measuring
+    seed, delta = fresh_seed(), fresh_delta()
+    labels = active_input_labels(seed, delta, np.zeros(schedule.n_inputs, bool))
+    tracemalloc.start()
+    try:
+        garbler = Garbler(schedule, seed, delta, block_gates=64, frame_bytes=4096)
+        ev = Evaluator(schedule, labels)
+        for frame in garbler.frames():
+            ev.feed(frame)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert 32 * schedule.n_and > 1_000_000
+    assert peak < 150_000, f"peak {peak} bytes for {schedule.n_slots} slots"
+
+
+def test_plan_rejects_and_steps_that_would_reuse_tweaks():
+    """Every AND gate's number is its hash tweak: steps must tile the AND rows in order."""
+    s = contiguous_schedule()
+    s.step_lo = np.array([0, 0, 3, 3], np.int64)  # the second AND step repeats gate 3
+    with pytest.raises(ValueError, match="tweaks"):
+        plan_for(s)
+
+
+@settings(max_examples=100, deadline=None)
+@given(n=st.integers(1, 12), start=st.integers(0, 8), data=st.data())
+def test_write_safety_checks_match_their_definition(n, start, data):
+    """A step may write block by block iff each out[i] is read only by rows <= i; a linear
+    step may write as it goes iff it reads none of its outputs (contiguous or not)."""
+    slots = st.integers(0, 24)
+    a = np.array(data.draw(st.lists(slots, min_size=n, max_size=n)), np.int32)
+    b = np.array(data.draw(st.lists(slots, min_size=n, max_size=n)), np.int32)
+    scattered = np.array(data.draw(st.lists(slots, min_size=n, max_size=n, unique=True)),
+                         np.int32)
+    for out in (np.arange(start, start + n, dtype=np.int32), scattered):
+        ordered = all(j <= i for i, s in enumerate(out.tolist())
+                      for j in range(n) if s in (a[j], b[j]))
+        checks = _ReadRows(25)
+        assert checks.reads_precede_writes(out, a, b) == ordered
+        assert checks.disjoint(out, a) == (not set(out.tolist()) & set(a.tolist()))
+        assert checks.reads_precede_writes(out, a, b) == ordered  # state was reset

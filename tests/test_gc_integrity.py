@@ -17,7 +17,7 @@ from snail_common.gc import (
     fresh_delta,
     fresh_seed,
 )
-from snail_common.gc.stream import HEADER
+from snail_common.gc.stream import HEADER, MAX_BLOCK_GATES, Header
 
 
 def garble(schedule, bits, **kw):
@@ -144,3 +144,17 @@ def test_stream_errors():
         Evaluator(schedule, labels[:-1])
     with pytest.raises(RuntimeError):
         Garbler(schedule, seed, delta).output_zero_labels  # noqa: B018
+
+
+def test_header_and_garbler_arguments_are_bounded():
+    """A stream header cannot make the evaluator allocate without bound; bad garbler
+    arguments fail at construction, not after the header went out."""
+    schedule = one_and_layer(4)
+    seed, delta = fresh_seed(), fresh_delta()
+    header = Header(schedule.n_and, 8, 4, MAX_BLOCK_GATES + 1, bytes(16))
+    with pytest.raises(StreamError, match="block size"):
+        Evaluator(schedule, active_input_labels(seed, delta, np.zeros(8, bool))).feed(
+            header.pack())
+    for kw in ({"block_gates": 0}, {"block_gates": MAX_BLOCK_GATES + 1}, {"key": bytes(15)}):
+        with pytest.raises(ValueError):
+            Garbler(schedule, seed, delta, **kw)

@@ -2,7 +2,8 @@
 
 ``feed`` accepts the stream cut anywhere (frames as sent, or arbitrary socket reads); it
 runs the schedule as far as the bytes received allow, so evaluation of frame k overlaps
-the garbling and transfer of frame k+1.
+the garbling and transfer of frame k+1. Tables are read in place from the caller's buffer;
+only a block cut by a read boundary is copied (once) into a pending buffer.
 """
 
 from __future__ import annotations
@@ -13,8 +14,8 @@ from snail_common.circuit.ir import FIRST_INPUT
 from snail_common.circuit.schedule import Schedule
 
 from .halfgates import HalfGates
-from .plan import AndPlan, plan_for
-from .slots import slot_view
+from .plan import AndOutputs, AndPlan, Scratch, plan_for
+from .slots import part, slot_view
 from .stream import BYTES_PER_AND, HEADER, Header, StreamError
 
 
@@ -31,14 +32,15 @@ class Evaluator:
         self._labels = np.empty((s.n_slots, 2), np.uint64)
         self._labels[: len(inputs)] = inputs
         self._slots = slot_view(self._labels)
+        self._scratch = Scratch()
         self._steps = plan_for(s).steps
         self._step = 0  # next step to run
         self._done_in_step = 0  # AND gates of the current step already evaluated
-        self._pending = b""  # received bytes not yet usable (partial header or block)
+        self._need = HEADER.size  # bytes the next unit of work (header or block) takes
+        self._pending = bytearray()  # the start of that unit, when a read cut it
         self.header: Header | None = None
         self._kernel: HalfGates | None = None
-        self._out = self._step_out = np.empty((0, 2), np.uint64)
-        self._out_slots = self._step_out_slots = slot_view(self._out)
+        self._outputs: AndOutputs | None = None
 
     @property
     def done(self) -> bool:
@@ -48,26 +50,36 @@ class Evaluator:
         """Active labels of the output wires, once the whole stream has been fed."""
         if not self.done:
             raise StreamError("the stream ended before the last garbled table")
-        if self._pending:
-            raise StreamError(f"{len(self._pending)} bytes of trailing data after the stream")
         return self._labels[self._schedule.output_slots].copy()
 
     def feed(self, data: bytes | bytearray | memoryview) -> None:
         """Take the next bytes of the stream and evaluate everything they make possible."""
+        view = memoryview(data).cast("B")
         if self._pending:
-            data = self._pending + bytes(data)
-            self._pending = b""
+            take = min(len(view), self._need - len(self._pending))
+            self._pending += view[:take]
+            view = view[take:]
+            if len(self._pending) < self._need:
+                return
+            unit, self._pending = self._pending, bytearray()
+            self._consume(memoryview(unit))  # exactly one unit: consumed whole
+        if not view:
+            return
+        used = self._consume(view)
+        if used < len(view):
+            if self.done:
+                raise StreamError(f"{len(view) - used} bytes of trailing data after the stream")
+            self._pending = bytearray(view[used:])
+
+    def _consume(self, data: memoryview) -> int:
+        """Read the header if not yet read, then run; returns the bytes used."""
+        pos = 0
         if self.header is None:
             if len(data) < HEADER.size:
-                self._pending = bytes(data)
-                return
+                return 0
             self._start(Header.unpack(bytes(data[: HEADER.size])))
-            data = memoryview(data)[HEADER.size :]
-        used = self._run(data)
-        if used < len(data):
-            if self.done:
-                raise StreamError(f"{len(data) - used} bytes of trailing data after the stream")
-            self._pending = bytes(data[used:])
+            pos = HEADER.size
+        return pos + self._run(data[pos:])
 
     def _start(self, header: Header) -> None:
         s = self._schedule
@@ -75,42 +87,34 @@ class Evaluator:
         self.header = header
         self._bytes_per_and = BYTES_PER_AND[header.scheme]
         self._kernel = HalfGates(header.key, header.block_gates)
-        self._out = np.empty((header.block_gates, 2), np.uint64)
-        self._out_slots = slot_view(self._out)
+        self._outputs = AndOutputs(self._labels, self._slots, header.block_gates)
 
-    def _run(self, data: bytes | memoryview) -> int:
+    def _run(self, data: memoryview) -> int:
         """Run steps while the data holds the next block; returns the bytes consumed."""
-        kernel, labels, slots = self._kernel, self._labels, self._slots
-        block, per_and = self.header.block_gates, self._bytes_per_and
+        kernel, outputs, labels, slots = self._kernel, self._outputs, self._labels, self._slots
+        block, per_and, scratch = self.header.block_gates, self._bytes_per_and, self._scratch
         steps, size, pos = self._steps, len(data), 0
         while self._step < len(steps):
             step = steps[self._step]
             if not isinstance(step, AndPlan):
-                step.run(labels, slots)
+                step.run(labels, slots, scratch)
                 self._step += 1
                 continue
-            n, k = len(step.out), self._done_in_step
-            m = min(block, n - k)
+            k = self._done_in_step
+            m = min(block, step.n - k)
             if size - pos < per_and * m:
+                self._need = per_and * m
                 break
             tables = np.frombuffer(data, np.uint64, 4 * m, pos).reshape(2 * m, 2)
-            if n > block:
-                if k == 0 and len(self._step_out) < n:
-                    self._step_out = np.empty((n, 2), np.uint64)
-                    self._step_out_slots = slot_view(self._step_out)
-                c = self._step_out[k : k + m]
-            else:
-                c = self._out[:m]
-            kernel.evaluate(labels, step.a[k : k + m], step.b[k : k + m],
-                            step.first + k, tables, c)
+            kernel.evaluate(labels, part(step.a, k, m), part(step.b, k, m), step.first + k,
+                            tables, outputs.target(step, k, m))
+            outputs.store(step, k, m)
             pos += per_and * m
-            if k + m < n:
+            if k + m < step.n:
                 self._done_in_step = k + m
-                continue
-            # the whole step is read: scatter (its outputs may reuse its operand slots)
-            slots[step.out] = self._step_out_slots[:n] if n > block else self._out_slots[:m]
-            self._done_in_step = 0
-            self._step += 1
+            else:
+                self._done_in_step = 0
+                self._step += 1
         return pos
 
 

@@ -16,9 +16,17 @@ from snail_common.circuit.schedule import Schedule
 
 from .halfgates import HalfGates
 from .labels import check_delta, derive_zero_labels
-from .plan import AndPlan, plan_for
-from .slots import slot_view
-from .stream import BLOCK_GATES, BYTES_PER_AND, FRAME_BYTES, SCHEME_HALF_GATES, Header
+from .plan import AndOutputs, AndPlan, Scratch, plan_for
+from .slots import part, slot_view
+from .stream import (
+    BLOCK_GATES,
+    BYTES_PER_AND,
+    FRAME_BYTES,
+    KEY_BYTES,
+    MAX_BLOCK_GATES,
+    SCHEME_HALF_GATES,
+    Header,
+)
 
 
 class Garbler:
@@ -31,12 +39,17 @@ class Garbler:
     def __init__(self, schedule: Schedule, seed: bytes, delta: np.ndarray | bytes,
                  key: bytes | None = None, block_gates: int = BLOCK_GATES,
                  frame_bytes: int = FRAME_BYTES) -> None:
+        if not 1 <= block_gates <= MAX_BLOCK_GATES:
+            raise ValueError(f"block_gates must be in 1..{MAX_BLOCK_GATES}, got {block_gates}")
+        if key is not None and len(key) != KEY_BYTES:
+            raise ValueError(f"key must be {KEY_BYTES} bytes, got {len(key)}")
         self._schedule = schedule
         self._plan = plan_for(schedule)
         self._delta = check_delta(delta).copy()
         self._input_zero = derive_zero_labels(seed, FIRST_INPUT + schedule.n_inputs)
+        key = key if key is not None else secrets.token_bytes(KEY_BYTES)
         self.header = Header(schedule.n_and, schedule.n_inputs, len(schedule.output_slots),
-                             block_gates, key if key is not None else secrets.token_bytes(16))
+                             block_gates, key)
         self._frame_bytes = max(frame_bytes, block_gates * BYTES_PER_AND[SCHEME_HALF_GATES])
         self._outputs: np.ndarray | None = None
 
@@ -59,30 +72,23 @@ class Garbler:
         labels[: len(self._input_zero)] = self._input_zero
         slots = slot_view(labels)
         kernel = HalfGates(self.header.key, block, self._delta)
+        outputs, scratch = AndOutputs(labels, slots, block), Scratch()
         frame = np.empty(self._frame_bytes // 8, np.uint64)
         pos = 0
-        out = np.empty((block, 2), np.uint64)
-        out_slots = slot_view(out)
-        step_out = np.empty((0, 2), np.uint64)  # whole-step outputs of multi-block steps
         for step in self._plan.steps:
             if not isinstance(step, AndPlan):
-                step.run(labels, slots)
+                step.run(labels, slots, scratch)
                 continue
-            n = len(step.out)
-            if n > block and len(step_out) < n:
-                step_out = np.empty((n, 2), np.uint64)
-                step_out_slots = slot_view(step_out)
-            for k in range(0, n, block):
-                m = min(block, n - k)
+            for k in range(0, step.n, block):
+                m = min(block, step.n - k)
                 if pos + 4 * m > len(frame):
                     yield frame[:pos].tobytes()
                     pos = 0
-                c = step_out[k : k + m] if n > block else out[:m]
-                kernel.garble(labels, step.a[k : k + m], step.b[k : k + m], step.first + k,
-                              frame[pos : pos + 4 * m].reshape(2 * m, 2), c)
+                kernel.garble(labels, part(step.a, k, m), part(step.b, k, m), step.first + k,
+                              frame[pos : pos + 4 * m].reshape(2 * m, 2),
+                              outputs.target(step, k, m))
+                outputs.store(step, k, m)
                 pos += 4 * m
-            # scatter once all of the step's operands are read (its outputs may reuse them)
-            slots[step.out] = step_out_slots[:n] if n > block else out_slots[:n]
         if pos:
             yield frame[:pos].tobytes()
         self._outputs = labels[s.output_slots].copy()

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from .aes import AesBatch, byte_view
+from .slots import Rows, gather_into
 
 U64 = np.uint64
 
@@ -40,6 +41,8 @@ class HalfGates:
     """Garbling and evaluation kernels for blocks of up to ``block`` AND gates.
 
     One instance per run (it holds the AES key and, for the garbler, D); not thread-safe.
+    Both kernels gather every operand before writing any output, so ``out`` may be rows of
+    ``labels`` itself (the plan writes outputs in place when that is safe).
     """
 
     def __init__(self, key: bytes, block: int, delta: np.ndarray | None = None) -> None:
@@ -50,7 +53,7 @@ class HalfGates:
         self._y = np.empty((4 * n + 1, 2), U64)  # AES outputs, +1 block for the OpenSSL API
         self._xb, self._yb = byte_view(self._x), byte_view(self._y)
         self._tw = np.empty(2 * n, U64)
-        self._lsb = np.empty(4 * n, U64)
+        self._lsb = np.zeros(4 * n + 1, U64)  # word 0 stays 0: the shift below reads it
         self._m = np.empty((2 * n, 2), U64)  # select masks
         self._u = np.empty((2 * n, 2), U64)
         ar = np.arange(n, dtype=U64)
@@ -61,15 +64,14 @@ class HalfGates:
             self._d = np.tile(np.asarray(delta, U64), (n, 1))
             self._sd = np.tile(sigma(delta), (2 * n, 1))
 
-    def _gather_hash_inputs(self, labels: np.ndarray, a: np.ndarray, b: np.ndarray,
-                            g0: int) -> tuple[np.ndarray, np.ndarray]:
+    def _gather_hash_inputs(self, labels: np.ndarray, a: Rows, b: Rows, g0: int,
+                            n: int) -> tuple[np.ndarray, np.ndarray]:
         """Gather [A; B] and write sigma(label) ^ (0, tweak) for each into the AES input."""
-        n = len(a)
         ab, x = self._ab[: 2 * n], self._x[: 2 * n]
-        labels.take(a, axis=0, out=ab[:n], mode="clip")
-        labels.take(b, axis=0, out=ab[n:], mode="clip")
+        gather_into(labels, a, ab[:n])
+        gather_into(labels, b, ab[n:])
         tw = self._tw[: 2 * n]
-        np.add(self._tweak_pattern[:, :n], 2 * g0, out=tw.reshape(2, n))
+        np.add(self._tweak_pattern[:, :n], U64(2 * g0), out=tw.reshape(2, n))
         # word 0: x0 ^ x1, as one contiguous pass over the flat words (odd positions get
         # junk); word 1: x0 ^ tweak, a strided pass that overwrites the junk
         flat, xf = ab.reshape(-1), x.reshape(-1)
@@ -80,25 +82,24 @@ class HalfGates:
     def _masks(self, ab: np.ndarray) -> np.ndarray:
         """All-ones where lsb(label word 0) is 1, per label (both words), as (2n, 2).
 
-        Works on the flat word array so every pass is contiguous: keep the lsb of word 0,
-        copy it onto word 1 by a one-word shift, negate."""
+        Works on the flat word array so every pass is contiguous: keep the lsb of word 0
+        (after a leading zero word), copy it onto word 1 by a one-word shift, negate."""
         flat = ab.reshape(-1)
         w = flat.size
-        lsb = self._lsb[:w]
-        np.bitwise_and(flat, self._lsb_pattern[:w], out=lsb)
+        lsb = self._lsb[: w + 1]
+        np.bitwise_and(flat, self._lsb_pattern[:w], out=lsb[1:])
         m = self._m[: w // 2]
         mf = m.reshape(-1)
-        np.bitwise_or(lsb[1:], lsb[:-1], out=mf[1:])
-        mf[0] = lsb[0]
+        np.bitwise_or(lsb[1:], lsb[:-1], out=mf)
         np.negative(mf, out=mf)
         return m
 
-    def garble(self, labels: np.ndarray, a: np.ndarray, b: np.ndarray, g0: int,
+    def garble(self, labels: np.ndarray, a: Rows, b: Rows, g0: int,
                tables: np.ndarray, out: np.ndarray) -> None:
         """Garble gates (a[i], b[i]) numbered g0+i: write their tables, [TG; TE] as a
         (2n, 2) array, and their output zero-labels into ``out`` (n, 2)."""
-        n = len(a)
-        ab, x0 = self._gather_hash_inputs(labels, a, b, g0)
+        n = len(out)
+        ab, x0 = self._gather_hash_inputs(labels, a, b, g0, n)
         x1 = self._x[2 * n : 4 * n]
         sd = self._sd[: 2 * n]
         np.bitwise_xor(x0, sd, out=x1)  # inputs for A0^D, B0^D
@@ -119,12 +120,12 @@ class HalfGates:
         np.bitwise_xor(out, self._k01[:n], out=out)
         np.bitwise_xor(t[n:], ab[:n], out=t[n:])  # TE
 
-    def evaluate(self, labels: np.ndarray, a: np.ndarray, b: np.ndarray, g0: int,
+    def evaluate(self, labels: np.ndarray, a: Rows, b: Rows, g0: int,
                  tables: np.ndarray, out: np.ndarray) -> None:
         """Evaluate gates (a[i], b[i]) numbered g0+i from their tables [TG; TE] (2n, 2);
         write their active output labels into ``out`` (n, 2)."""
-        n = len(a)
-        ab, x = self._gather_hash_inputs(labels, a, b, g0)
+        n = len(out)
+        ab, x = self._gather_hash_inputs(labels, a, b, g0, n)
         self._aes.encrypt_into(self._xb[: 32 * n], self._yb[: 32 * n + 16])
         y = self._y[: 2 * n]
         np.bitwise_xor(y, x, out=y)

@@ -24,6 +24,8 @@ SCHEME_HALF_GATES = 1
 BYTES_PER_AND = {SCHEME_HALF_GATES: 32}
 FRAME_BYTES = 1 << 20
 BLOCK_GATES = 8192
+MAX_BLOCK_GATES = 1 << 20  # bounds what a stream header can make the evaluator allocate
+KEY_BYTES = 16
 
 HEADER = struct.Struct("<4sBBHQQQI16s")
 
@@ -55,8 +57,8 @@ class Header(NamedTuple):
                               f"(this build reads {VERSION})")
         if scheme not in BYTES_PER_AND:
             raise StreamError(f"unknown garbling scheme {scheme}")
-        if block < 1:
-            raise StreamError("block size must be positive")
+        if not 1 <= block <= MAX_BLOCK_GATES:
+            raise StreamError(f"block size {block} is not in 1..{MAX_BLOCK_GATES}")
         return Header(n_and, n_in, n_out, block, key, scheme, version)
 
     def check(self, n_and: int, n_inputs: int, n_outputs: int) -> None:
