@@ -58,6 +58,9 @@ class Options:
             raise ValueError("--max-iterations: must be at least 1")
         if self.min_invocations < 0 or self.pad_points < 0:
             raise ValueError("--min-invocations/--pad-points: must not be negative")
+        if self.mode != "sil":
+            raise ValueError("--mode: only 'sil' is served yet; the data-oblivious baseline "
+                             "is built and measured by `snail-bench circuit --mode do`")
         remote = (self.garbler, self.evaluator, self.tls_dir)
         if any(remote) and not all(remote):
             raise ValueError("--garbler, --evaluator and --tls-dir go together")

@@ -57,3 +57,15 @@ def test_random_scenes_match_opencv(algorithm):
         if not check["ok"]:
             failures.append((k, n, check))
     assert len(failures) <= 1, failures
+
+
+@pytest.mark.parametrize("algorithm", ["lm", "gn"])
+def test_svd_solver_matches_opencv(algorithm):
+    """The SVD variants (LM: SVD of the damped 6x6; GN: the paper's -pinv(J) r)."""
+    rng = np.random.default_rng(77)
+    for _ in range(25):
+        n = int(rng.choice([4, 6, 12]))
+        problem = random_scene(rng, n)
+        result = solve(problem, MirrorIteration(Spec(algorithm, "sil", "svd", n)), algorithm)
+        check = compare_with_opencv(problem, result.rvec, result.tvec)
+        assert check["ok"], check

@@ -15,11 +15,13 @@ import numpy as np
 from snail_common.circuit import CircuitBuilder
 from snail_common.circuit.ir import Circuit
 
+from .do import OUTPUT_SHAPES as DO_OUTPUT_SHAPES
+from .do import do_program
 from .fops import CircuitBackend, F, MirrorBackend
 from .sil import ALGORITHMS, OUTPUT_SHAPES, SOLVERS, input_shapes, sil_program
 
-VERSION = 2
-MODES = ("sil",)
+VERSION = 3
+MODES = ("sil", "do")
 MAX_POINTS = 4096
 ID_PATTERN = re.compile(r"^(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"
                         r"-n(?P<points>[1-9][0-9]{0,3})$")
@@ -41,6 +43,8 @@ class Spec:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if self.mode == "do" and self.algorithm != "lm":
+            raise ValueError("mode 'do' is the data-oblivious LM baseline: algorithm must be lm")
         if not 4 <= self.points <= MAX_POINTS:
             raise ValueError(f"points must be in 4..{MAX_POINTS}, got {self.points}")
 
@@ -67,10 +71,21 @@ def build(spec: Spec) -> Circuit:
     be = CircuitBackend(b, depth_opt=True)
     inputs = {name: F(be, b.input(name, shape, bits=32, dtype="float32"))
               for name, shape in input_shapes(spec.algorithm, spec.points).items()}
-    outputs = sil_program(inputs, spec.algorithm, spec.solver)
-    for name in OUTPUT_SHAPES:
+    outputs = program(spec, inputs)
+    for name in output_shapes(spec):
         b.output(name, outputs[name].v, dtype="float32")
     return b.build()
+
+
+def output_shapes(spec: Spec) -> dict[str, tuple[int, ...]]:
+    """SIL: the step and the cost; DO: the final pose and its cost."""
+    return DO_OUTPUT_SHAPES if spec.mode == "do" else OUTPUT_SHAPES
+
+
+def program(spec: Spec, inputs: dict[str, F]) -> dict[str, F]:
+    if spec.mode == "do":
+        return do_program(inputs, spec.solver)
+    return sil_program(inputs, spec.algorithm, spec.solver)
 
 
 def build_from_id(circuit_id: str) -> Circuit:
@@ -87,5 +102,5 @@ def run_mirror(spec: Spec, values: dict[str, np.ndarray]) -> dict[str, np.ndarra
         raise ValueError(f"missing inputs {missing}")
     inputs = {name: F(be, np.asarray(values[name], np.float32).reshape(shape))
               for name, shape in shapes.items()}
-    outputs = sil_program(inputs, spec.algorithm, spec.solver)
-    return {name: np.asarray(outputs[name].v, np.float32) for name in OUTPUT_SHAPES}
+    outputs = program(spec, inputs)
+    return {name: np.asarray(outputs[name].v, np.float32) for name in output_shapes(spec)}

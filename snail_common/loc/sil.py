@@ -12,9 +12,10 @@ from collections.abc import Callable
 from .fops import F, stack
 from .ldlt import ldlt_solve
 from .normal import UPPER, normal_equations
+from .svd import pinv_step, svd_solve, weighted_system
 
 ALGORITHMS = ("lm", "gn")
-SOLVERS = ("ldlt",)
+SOLVERS = ("ldlt", "svd")
 _DIAG = [UPPER.index((i, i)) for i in range(6)]
 
 
@@ -36,6 +37,8 @@ Solver = Callable[[F, F], F]
 def _solver(name: str) -> Solver:
     if name == "ldlt":
         return ldlt_solve
+    if name == "svd":
+        return svd_solve
     raise ValueError(f"solver must be one of {SOLVERS}, got {name!r}")
 
 
@@ -51,6 +54,11 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str) -> dict[str, 
     input pose."""
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
+    if algorithm == "gn" and solver == "svd":  # the paper's GN: -pinv(J) r on the 2n x 6 J
+        jac, res, cost = weighted_system(inputs["R"], inputs["t"], inputs["image"],
+                                         inputs["world"], inputs["weights"])
+        with cost.be.shallow():
+            return {"step": pinv_step(jac, res), "cost": cost}
     hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
                                         inputs["world"], inputs["weights"])
     with hess.be.shallow():  # the solve is one long chain: spend gates to cut depth
