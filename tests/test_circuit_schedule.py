@@ -1,13 +1,32 @@
-"""Schedule invariants on random circuits: every gate once, reads after writes, no clobbering."""
+"""Schedule invariants on random circuits: every gate once, reads after writes, no clobbering;
+slot layout and the cleartext evaluator's strided runs on a wide circuit."""
 
 import numpy as np
+import pytest
 from circuit_oracle import direct_eval
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from snail_common.circuit import CircuitBuilder, evaluate_bits, schedule_circuit
+from snail_common.bench.compiler import build_multipliers
+from snail_common.circuit import CircuitBuilder, evaluate_bits, run_schedule, schedule_circuit
+from snail_common.circuit.cleartext import (
+    MIN_RUN,
+    RAGGED_ROWS,
+    _GatherOp,
+    _plan_for,
+    _RaggedOp,
+    _RunOp,
+    _view,
+)
 from snail_common.circuit.ir import AND, FIRST_INPUT
-from snail_common.circuit.schedule import AND_STEP, _allocate_slots, _fold
+from snail_common.circuit.schedule import (
+    AND_STEP,
+    LINEAR_STEP,
+    Schedule,
+    _allocate_slots,
+    _fold,
+    _order_rows,
+)
 
 
 @st.composite
@@ -49,10 +68,11 @@ def _check_slot_discipline(circuit, plan, slot_of):
             reads = np.concatenate([plan.and_a[lo:hi], plan.and_b[lo:hi]])
             outs = plan.and_out[lo:hi]
         else:
-            reads = plan.lin_terms[plan.lin_ptr[lo] : plan.lin_ptr[hi]]
+            reads = plan.terms_of(s)
             outs = plan.lin_out[lo:hi]
         assert np.array_equal(held[slot_of[reads]], reads), f"step {s} reads a clobbered slot"
         assert len(np.unique(slot_of[outs])) == len(outs)
+        assert not np.isin(slot_of[outs], slot_of[reads]).any(), f"step {s} writes its reads"
         held[slot_of[outs]] = outs
     assert np.array_equal(held[slot_of[circuit.outputs]], circuit.outputs)
 
@@ -83,9 +103,10 @@ def test_every_and_gate_scheduled_once_and_reads_follow_writes(circuit):
     assert all(len(d) == 1 for d in step_depths)
     assert [int(d[0]) for d in step_depths] == sorted({int(d[0]) for d in step_depths})
     assert len(np.unique(plan.lin_out)) == len(plan.lin_out)
-    slot_of, n_slots = _allocate_slots(circuit, plan, reuse=True)
+    death = _order_rows(circuit, plan)
+    slot_of, n_slots = _allocate_slots(circuit, plan, death, reuse=True)
     _check_slot_discipline(circuit, plan, slot_of)
-    _, n_plain = _allocate_slots(circuit, plan, reuse=False)
+    _, n_plain = _allocate_slots(circuit, plan, death, reuse=False)
     assert n_slots <= n_plain
 
 
@@ -115,3 +136,84 @@ def test_xor_chains_fold_into_two_steps_per_and_level():
     sched = schedule_circuit(b.build())
     assert sched.n_steps <= 4
 
+
+@settings(max_examples=60, deadline=None)
+@given(random_circuits())
+def test_linear_rows_sorted_by_term_count_and_schedule_round_trips(circuit):
+    sched = schedule_circuit(circuit)
+    for i, step in enumerate(sched.steps()):
+        if sched.step_kind[i] == LINEAR_STEP:
+            counts = np.diff(np.append(step.starts, len(step.terms)))
+            assert np.all(np.diff(counts) >= 0)
+    again = Schedule.from_arrays(sched.to_arrays())
+    assert again.disjoint_io
+    bits = _random_inputs(circuit)
+    assert np.array_equal(evaluate_bits(again, bits), evaluate_bits(sched, bits))
+
+
+@given(st.integers(0, 50), st.integers(-7, 7), st.integers(1, 40))
+def test_view_selects_equally_spaced_slots(start, stride, n):
+    slots = np.arange(400)
+    first = start + max(0, -stride) * (n - 1)  # keep every slot >= 0
+    want = first + stride * np.arange(n)
+    got = np.broadcast_to(slots[_view(first, stride, n)], (n,))
+    assert np.array_equal(got, want)
+
+
+def test_wide_circuit_runs_entirely_on_strided_views():
+    """160 multipliers side by side: every step row falls in a run, results are products."""
+    circuit = build_multipliers(160)
+    sched = schedule_circuit(circuit)
+    plan = _plan_for(sched)
+    ops = [op for step in plan.steps for op in step.ops]
+    assert all(isinstance(op, _RunOp) for op in ops)
+    rows = [len(range(*op.out.indices(sched.n_slots))) for op in ops]
+    assert sum(rows) == sched.n_and + len(sched.lin_out)
+    assert min(rows) >= 160  # every run spans all multipliers
+    rng = np.random.default_rng(3)
+    lanes = 2  # 128 input vectors: two uint64 words per slot
+    x, y = (rng.integers(0, 2**32, (64 * lanes, 160), dtype=np.uint64) for _ in range(2))
+    bits = np.concatenate([((x[..., None] >> np.arange(32, dtype=np.uint64)) & 1),
+                           ((y[..., None] >> np.arange(32, dtype=np.uint64)) & 1)], axis=1)
+    out = evaluate_bits(sched, bits.reshape(64 * lanes, -1).astype(bool))
+    got = (out.reshape(64 * lanes, 160, 32) << np.arange(32, dtype=np.uint64)).sum(axis=2)
+    assert np.array_equal(got, (x * y) & np.uint64(0xFFFFFFFF))
+
+
+@pytest.mark.parametrize(("n", "leftover_op"), [(MIN_RUN, _RaggedOp),
+                                                (RAGGED_ROWS + 1, _GatherOp)])
+def test_step_writing_its_own_reads_is_evaluated_before_writing(n, leftover_op):
+    """An older schedule may let a step's outputs reuse slots the same step reads: the 2-term
+    group overwrites x3's slot before the 3-term group reads it unless the step is deferred.
+    The 2-term rows form a strided run, the scrambled 3-term rows are left to gathers."""
+    x = [FIRST_INPUT + k * n + np.arange(n) for k in range(4)]  # four input groups
+    n_inputs = 4 * n
+    fresh = FIRST_INPUT + n_inputs + np.arange(n)
+    out = np.concatenate([x[3], fresh])  # 2-term rows overwrite x3
+    scramble = np.random.default_rng(0).permutation(n)  # gathers for the 3-term rows
+    terms = np.concatenate([np.stack([x[0], x[1]], axis=1).ravel(),
+                            np.stack([x[1], x[2], x[3]], axis=1)[scramble].ravel()])
+    ptr = np.concatenate([np.arange(0, 2 * n + 1, 2), 2 * n + 3 * np.arange(1, n + 1)])
+    empty = np.zeros(0, np.int32)
+    arrays = {"step_kind": np.array([LINEAR_STEP], np.uint8), "step_lo": np.array([0]),
+              "step_hi": np.array([2 * n]), "and_out": empty, "and_a": empty,
+              "and_b": empty, "lin_out": out.astype(np.int32), "lin_ptr": ptr,
+              "lin_terms": terms.astype(np.int32), "output_slots": out.astype(np.int32),
+              "meta": np.array([n_inputs, FIRST_INPUT + n_inputs + n])}  # no disjoint_io
+    sched = Schedule.from_arrays(arrays, prefix="")
+    assert not sched.disjoint_io
+    plan = _plan_for(sched)
+    assert plan.steps[0].defer
+    assert {type(op) for op in plan.steps[0].ops} == {_RunOp, leftover_op}
+    words = np.random.default_rng(1).integers(0, 2**63, (n_inputs, 1), dtype=np.uint64)
+    v = {int(w): words[w - FIRST_INPUT] for w in np.concatenate(x)}
+    want = [v[a] ^ v[b] for a, b in zip(x[0], x[1])]
+    want += [v[a] ^ v[b] ^ v[c] for a, b, c in np.stack([x[1], x[2], x[3]], 1)[scramble]]
+    assert np.array_equal(run_schedule(sched, words), np.array(want))
+
+
+def test_max_terms_outside_the_byte_sized_term_counts_is_refused():
+    circuit = build_multipliers(1)
+    for bad in (1, 128):
+        with pytest.raises(ValueError, match="max_terms"):
+            schedule_circuit(circuit, max_terms=bad)
