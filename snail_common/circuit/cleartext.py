@@ -15,7 +15,6 @@ everything before writing anything.
 
 from __future__ import annotations
 
-import weakref
 from collections.abc import Mapping
 from itertools import pairwise
 from typing import NamedTuple
@@ -23,6 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .ir import FIRST_INPUT, Circuit
+from .memo import per_object
 from .schedule import AndStep, LinearStep, Schedule
 from .values import from_bits, pack_lanes, to_bits, unpack_lanes
 
@@ -106,20 +106,8 @@ class _Plan(NamedTuple):
     scratch_rows: int
 
 
-_plans: dict[int, _Plan] = {}
-
-
-def _plan_for(schedule: Schedule) -> _Plan:
-    """The run plan of ``schedule``, built on first use and kept while the schedule lives."""
-    key = id(schedule)
-    plan = _plans.get(key)
-    if plan is None:
-        plan = _plans[key] = _build(schedule)
-        weakref.finalize(schedule, _plans.pop, key, None)
-    return plan
-
-
 def _build(schedule: Schedule) -> _Plan:
+    """The run plan of ``schedule``, built on first use and kept while the schedule lives."""
     stamp = None if schedule.disjoint_io else np.full(schedule.n_slots, -1, np.int32)
     steps, scratch_rows = [], 0
     for i, step in enumerate(schedule.steps()):
@@ -134,6 +122,9 @@ def _build(schedule: Schedule) -> _Plan:
                                              if isinstance(op, _GatherOp)])
         steps.append(_StepPlan(tuple(ops), defer))
     return _Plan(tuple(steps), scratch_rows)
+
+
+_plan_for = per_object(_build)
 
 
 def _step_ops(step: AndStep | LinearStep) -> list[_RunOp | _GatherOp | _RaggedOp]:

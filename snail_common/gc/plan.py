@@ -17,11 +17,11 @@ plan.
 
 from __future__ import annotations
 
-import weakref
 from typing import NamedTuple
 
 import numpy as np
 
+from snail_common.circuit.memo import per_object
 from snail_common.circuit.schedule import AndStep, LinearStep, Schedule
 
 from .slots import Rows, as_rows, gather, part, slot_view, write
@@ -135,19 +135,6 @@ class Plan(NamedTuple):
     steps: tuple[AndPlan | LinearPlan | RaggedPlan, ...]
 
 
-_cache: dict[int, Plan] = {}
-
-
-def plan_for(schedule: Schedule) -> Plan:
-    """The plan of ``schedule``, built on first use and kept while the schedule lives."""
-    key = id(schedule)
-    plan = _cache.get(key)
-    if plan is None:
-        plan = _cache[key] = _build(schedule)
-        weakref.finalize(schedule, _cache.pop, key, None)
-    return plan
-
-
 def _length(rows: Rows) -> int:
     return rows.stop - rows.start if isinstance(rows, slice) else len(rows)
 
@@ -188,6 +175,7 @@ class _ReadRows:
 
 
 def _build(schedule: Schedule) -> Plan:
+    """The plan of ``schedule``, built on first use and kept while the schedule lives."""
     reads = _ReadRows(schedule.n_slots)
     steps = []
     gates = 0  # AND rows so far: the next step's first gate number (its tweak base)
@@ -234,3 +222,6 @@ def _linear(step: LinearStep, direct: bool) -> LinearPlan | RaggedPlan:
         groups.append(LinearGroup(as_rows(step.out[rows]),
                                   tuple(as_rows(t[first + k]) for k in range(c))))
     return LinearPlan(tuple(groups), direct)
+
+
+plan_for = per_object(_build)
