@@ -17,16 +17,22 @@ from .integer import _align
 from .words import Word, wires
 
 
-def prefix_carries(b: CircuitBuilder, x: Word, y: Word, cin=ZERO) -> Word:
-    """Carries into bits 0..n of x + y + cin (n+1 wires), Sklansky tree."""
+def _generate_propagate(b: CircuitBuilder, x: Word, y: Word, cin) -> tuple[Word, Word]:
+    """Per-bit (generate, propagate) of x + y, with the carry-in folded in as a generate at
+    position -1 (so both have n+1 wires)."""
     x, y = _align(x, y, False)
     cin = wires(cin)
     lead = np.broadcast_shapes(x.shape[:-1], cin.shape)
     x = np.broadcast_to(x, lead + x.shape[-1:])
     y = np.broadcast_to(y, lead + y.shape[-1:])
-    # fold the carry in as a generate at position -1
     g = np.concatenate([np.broadcast_to(cin, lead)[..., None], b.and_(x, y)], axis=-1)
     p = np.concatenate([np.zeros(lead + (1,), np.int32), b.xor(x, y)], axis=-1)
+    return g, p
+
+
+def prefix_carries(b: CircuitBuilder, x: Word, y: Word, cin=ZERO) -> Word:
+    """Carries into bits 0..n of x + y + cin (n+1 wires), Sklansky tree."""
+    g, p = _generate_propagate(b, x, y, cin)
     n = g.shape[-1]
     span = 1
     while span < n:
@@ -83,13 +89,7 @@ def carry_out_tree(b: CircuitBuilder, x: Word, y: Word, cin=ZERO) -> np.ndarray:
     Log depth like the Sklansky adder but only the last carry: about 3n AND gates
     instead of n log2 n. This is the fast comparator (x >= y is the carry of x + ~y + 1).
     """
-    x, y = _align(x, y, False)
-    cin = wires(cin)
-    lead = np.broadcast_shapes(x.shape[:-1], cin.shape)
-    x = np.broadcast_to(x, lead + x.shape[-1:])
-    y = np.broadcast_to(y, lead + y.shape[-1:])
-    g = np.concatenate([np.broadcast_to(cin, lead)[..., None], b.and_(x, y)], axis=-1)
-    p = np.concatenate([np.zeros(lead + (1,), np.int32), b.xor(x, y)], axis=-1)
+    g, p = _generate_propagate(b, x, y, cin)
     while g.shape[-1] > 1:
         n = g.shape[-1]
         lo_g, hi_g = g[..., 0 : n - 1 : 2], g[..., 1:n:2]
