@@ -8,7 +8,7 @@ from shared_paths import BRISTOL
 
 from snail_common.bench.cli import main as bench
 from snail_common.circuit import CircuitBuilder, evaluate
-from snail_common.circuit.cache import cache_dir, cached, load
+from snail_common.circuit.cache import cache_dir, cached, code_digest, load, source_digest
 
 
 def _adder():
@@ -51,7 +51,7 @@ def test_hash_changes_with_the_netlist():
 
 def test_corrupt_cache_file_is_detected_and_rebuilt(tmp_path):
     cached("adder-v1", _adder, tmp_path)
-    path = tmp_path / "adder-v1.npz"
+    path = tmp_path / f"adder-v1.{code_digest()}.npz"
     with np.load(path) as d:
         arrays = dict(d)
     arrays["a"] = arrays["a"].copy()
@@ -64,6 +64,38 @@ def test_corrupt_cache_file_is_detected_and_rebuilt(tmp_path):
         assert "hash" in str(e)
     c, _ = cached("adder-v1", _adder, tmp_path)
     assert c.content_hash() == _adder().content_hash()
+
+
+def test_changed_code_never_loads_a_stale_circuit(tmp_path, monkeypatch):
+    """Same name, different circuit-building code: the cache builds anew instead of
+    returning what the old code made."""
+    builds = []
+
+    def build():
+        builds.append(1)
+        return _adder()
+
+    cached("adder-v1", build, tmp_path)
+    cached("adder-v1", build, tmp_path)
+    assert len(builds) == 1
+    monkeypatch.setattr("snail_common.circuit.cache.code_digest", lambda: "0123456789abcdef")
+    cached("adder-v1", build, tmp_path)
+    assert len(builds) == 2
+    assert len(list(tmp_path.glob("adder-v1.*.npz"))) == 2
+
+
+def test_source_digest_follows_every_circuit_source_file(tmp_path):
+    for package in ("arith", "circuit", "loc", "net"):
+        (tmp_path / package).mkdir()
+        (tmp_path / package / "m.py").write_text("x = 1\n")
+    before = source_digest(tmp_path)
+    (tmp_path / "net" / "m.py").write_text("x = 2\n")  # not circuit code
+    assert source_digest(tmp_path) == before
+    (tmp_path / "loc" / "m.py").write_text("x = 2\n")
+    changed = source_digest(tmp_path)
+    assert changed != before
+    (tmp_path / "arith" / "new.py").write_text("")
+    assert source_digest(tmp_path) != changed
 
 
 def test_cache_dir_env_override(monkeypatch, tmp_path):

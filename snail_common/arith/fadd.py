@@ -42,37 +42,43 @@ import numpy as np
 
 from snail_common.circuit import ONE, ZERO, CircuitBuilder
 
-from .fbits import round_pack
+from .fbits import FRAC, check_frac, round_pack
 from .integer import add, add_carry, carries, select
 from .prefix import add_fast, carry_out_tree, prefix_carries
 from .shift import shl_const, shr_sticky
 from .words import Word, and_all, bit, broadcast_lead, cat, or_all, sext, zext
 
-NEAR_ONLY = (16, 8, 4)  # normalization stages that only the near case can take
+NEAR_ONLY = 4  # normalization stages of 4 and more: only the near case takes them
 
 
-def fadd(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> Word:
-    """x + y as float32 words."""
+def fadd(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False,
+         frac: int = FRAC) -> Word:
+    """x + y as float32 words, or in the narrow format with ``frac`` fraction bits."""
+    check_frac(frac)
     x, y = broadcast_lead(x, y)
     lead = x.shape[:-1]
+    p = frac + 1                                              # significand bits
     sx, sy = x[..., 31], y[..., 31]
-    mx, my = x[..., :31], y[..., :31]
+    mx, my = x[..., FRAC - frac : 31], y[..., FRAC - frac : 31]
     swap = b.not_(_carry_out(b, mx, b.not_(my), ONE, depth_opt))      # |x| < |y|
     ma = select(b, swap, mx, my)
     mb = b.xor(b.xor(mx, my), ma)
     sa = b.mux(swap, sx, sy)
     eff_sub = b.xor(sx, sy)
-    ea, eb = ma[..., 23:31], mb[..., 23:31]
+    ea, eb = ma[..., frac:], mb[..., frac:]
     ha, hb = or_all(b, ea), or_all(b, eb)
     d = (add_fast if depth_opt else add)(b, ea, b.not_(eb), ONE)      # 0 <= d <= 255
-    big = b.or_(or_all(b, d[..., 5:]), b.not_(hb))
-    # d >= 32 or b == 0: force a shift of >= 28, past the whole window
-    amount = cat(d[..., :2], b.or_(d[..., 2:5], big[..., None]))
+    # the window holds p + 2 bits: d >= 2^stages or b == 0 forces the top stages on,
+    # a shift of at least p + 2 (past the whole window)
+    stages = (p + 2).bit_length()
+    forced = max(j for j in range(stages) if (1 << stages) - (1 << j) >= p + 2)
+    big = b.or_(or_all(b, d[..., stages:]), b.not_(hb))
+    amount = cat(d[..., :forced], b.or_(d[..., forced:stages], big[..., None]))
     zero2 = np.zeros(lead + (2,), np.int32)
-    win = cat(zero2, mb[..., :23], bit(hb))                  # [round, guard, 24-bit sig]
+    win = cat(zero2, mb[..., :frac], bit(hb))                # [round, guard, p-bit sig]
     aligned, st = shr_sticky(b, win, amount, order="small")
     st = b.and_(st, hb)
-    wa = cat(zero2, ma[..., :23], bit(ha))                     # [round, guard, sig]
+    wa = cat(zero2, ma[..., :frac], bit(ha))                   # [round, guard, sig]
     wb = b.xor(aligned, eff_sub[..., None])
     # subtracting the lost fraction f > 0 borrows one: a - B - f = (a + ~B) + (1 - f)
     s, cout = _add_carry(b, wa, wb, b.and_(eff_sub, b.not_(st)), depth_opt)
@@ -81,17 +87,18 @@ def fadd(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> Word:
     sig, guard = top[..., 1:], top[..., 0]
     # biased exponent - 1 = ea - shift; 9 bits hold [-31, 255], the 10th is a sign copy
     e1 = sext((add_fast if depth_opt else add)(b, zext(ea, 9), b.not_(zext(shift, 9)), ONE), 10)
-    cancel = b.not_(sig[..., 23])
+    cancel = b.not_(sig[..., p - 1])
     sign = b.mux(ha, b.and_(sx, sy), b.and_(sa, b.not_(cancel)))
     return round_pack(b, sign, e1, sig, guard, sticky, zero=cancel, inf=and_all(b, ea),
                       exact_tiny=True, depth_opt=depth_opt)
 
 
-def fsub(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> Word:
+def fsub(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False,
+         frac: int = FRAC) -> Word:
     """x - y: addition with y's sign flipped (free)."""
     y = np.array(y, np.int32, copy=True)
     y[..., 31] = b.not_(y[..., 31])
-    return fadd(b, x, y, depth_opt)
+    return fadd(b, x, y, depth_opt, frac)
 
 
 def _carry_out(b: CircuitBuilder, x: Word, y: Word, cin, fast: bool) -> np.ndarray:
@@ -108,28 +115,30 @@ def _add_carry(b: CircuitBuilder, x: Word, y: Word, cin, fast: bool):
 def _normalize(b: CircuitBuilder, v: Word, st) -> tuple[Word, Word, np.ndarray]:
     """Shift the adder result left until its top bit is 1.
 
-    ``v`` is [round, guard, 24-bit significand, carry]; ``st`` says the alignment lost
-    nonzero bits below the round bit. Returns (guard + 24-bit significand after the
-    shift, the 5-bit shift amount, the sticky OR of everything below the guard). Stage
-    2^j shifts when the top 2^j bits are zero. A shift of 3 or more only happens in the
-    near case, where the round bit and ``st`` are zero: the stages of NEAR_ONLY leave bit
-    0 alone, and a bit that is zero whenever the stage shifts and receives a zero keeps
-    its wire for free. The sticky bit therefore needs only the shift-0/1/2 cases: ``st``
-    always, the round bit when the shift is <= 1 (bit 25 or 26 set), the guard bit when
-    it is 0 (bit 26 set).
+    ``v`` is [round, guard, p-bit significand, carry]; ``st`` says the alignment lost
+    nonzero bits below the round bit. Returns (guard + p-bit significand after the
+    shift, the shift amount word, the sticky OR of everything below the guard). Stage
+    2^j shifts when the top 2^j bits are zero; a nonzero v has a 1 at the guard or above
+    (the round bit only with no cancellation), so the stages cover shifts up to n - 2.
+    A shift of 3 or more only happens in the near case, where the round bit and ``st``
+    are zero: the stages of NEAR_ONLY leave bit 0 alone, and a bit that is zero whenever
+    the stage shifts and receives a zero keeps its wire for free. The sticky bit
+    therefore needs only the shift-0/1/2 cases: ``st`` always, the round bit when the
+    shift is <= 1 (one of the top two bits set), the guard bit when it is 0 (the top bit
+    set).
     """
     n = v.shape[-1]
-    sticky = b.or_(st, b.or_(b.and_(v[..., 0], b.or_(v[..., 25], v[..., 26])),
-                             b.and_(v[..., 1], v[..., 26])))
+    sticky = b.or_(st, b.or_(b.and_(v[..., 0], b.or_(v[..., n - 2], v[..., n - 1])),
+                             b.and_(v[..., 1], v[..., n - 1])))
     x = v
     amt = []
-    for k in (16, 8, 4, 2, 1):
+    for k in (1 << j for j in reversed(range((n - 2).bit_length()))):
         z = b.not_(or_all(b, x[..., n - k:]))
         amt.append(z)
         src = shl_const(x, k)
         known0 = np.zeros(n, bool)          # positions that are 0 whenever z is 1
         known0[n - k:] = True
-        if k in NEAR_ONLY:
+        if k >= NEAR_ONLY:
             known0[:1] = True
         src_known0 = np.concatenate([np.ones(k, bool), known0[: n - k]])
         lowest = {2: 1, 1: 2}.get(k, 0)      # outputs below this are never read again

@@ -1,4 +1,4 @@
-"""int32 <-> float32 conversions.
+"""int32 <-> float32 conversions, and float32 -> narrow rounding.
 
 ``i2f``: absolute value (conditional negate), fused leading-zero normalization of the
 32-bit magnitude, round to nearest even (ties are possible above 2^24).
@@ -6,6 +6,7 @@
 the top of a 32-bit word by 157 - e. Out of range (|x| >= 2^31, except -2^31 itself),
 infinities and NaN give INT32_MIN, the x86 'integer indefinite' value; zeros and
 subnormals give 0.
+``fround``: float32 -> a narrow format (fbits docstring), round to nearest even.
 """
 
 from __future__ import annotations
@@ -14,10 +15,10 @@ import numpy as np
 
 from snail_common.circuit import CircuitBuilder
 
-from .fbits import fields, nonzero_exp, round_pack
-from .integer import cond_negate, sub
+from .fbits import FRAC, check_frac, fields, nonzero_exp, pack, round_pack
+from .integer import cond_negate, increment, sub
 from .shift import normalize, shr
-from .words import Word, cat, const, or_all, wires, zext
+from .words import Word, and_all, cat, const, or_all, wires, zext
 
 
 def i2f(b: CircuitBuilder, x: Word) -> Word:
@@ -48,3 +49,24 @@ def f2i(b: CircuitBuilder, x: Word) -> Word:
     out = np.array(out, copy=True)
     out[..., 31] = b.or_(out[..., 31], over)
     return out
+
+
+def fround(b: CircuitBuilder, x: Word, frac: int) -> Word:
+    """float32 -> the narrow format with ``frac`` fraction bits, round to nearest even
+    (about 2 frac + 30 AND gates). Zeros and subnormals give signed zeros, rounding up
+    from the largest binade gives an infinity; infinities and NaN are not rounded (a NaN
+    keeps its top payload bits, which may leave an infinity)."""
+    check_frac(frac)
+    x = wires(x)
+    if frac == FRAC:
+        return x
+    s, e, f = fields(x)
+    drop = FRAC - frac
+    keep = f[..., drop:]
+    sticky = or_all(b, f[..., : drop - 1]) if drop > 1 else np.zeros_like(s)
+    normal = nonzero_exp(b, e)
+    live = b.and_(normal, b.not_(and_all(b, e)))            # finite and nonzero
+    rnd = b.and_(b.and_(f[..., drop - 1], b.or_(sticky, keep[..., 0])), live)
+    mant, carry = increment(b, keep, rnd)
+    exp, _ = increment(b, e, carry)
+    return pack(s, exp, b.and_(mant, normal[..., None]))

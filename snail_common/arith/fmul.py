@@ -18,38 +18,39 @@ import numpy as np
 
 from snail_common.circuit import ONE, CircuitBuilder
 
-from .fbits import fields, nonzero_exp, round_pack
+from .fbits import FRAC, check_frac, fields, nonzero_exp, round_pack
 from .integer import add
 from .multiply import mul, mul_const
 from .words import Word, and_all, broadcast_lead, cat, const, or_all, zext
 
 
-def _finish(b: CircuitBuilder, sign, e_sum: Word, prod: Word, nbits: int, zero,
+def _finish(b: CircuitBuilder, sign, e_sum: Word, prod: Word, p: int, zero,
             inf=None, nan=None) -> Word:
-    """Normalize a product of two [1,2) significands (prod has 2*nbits-ish bits with the
-    binary point below bit ``nbits``) and round. ``e_sum`` = biased result exponent
+    """Normalize a product of two [1,2) significands (prod has 2p bits, value in [1, 4)
+    times 2^(2p-2)) and round to a p-bit significand. ``e_sum`` = biased result exponent
     minus one before the normalization carry, as a signed 10-bit word."""
     top = prod.shape[-1]
     hi = prod[..., top - 1]
-    sig = b.mux(hi[..., None], prod[..., top - 25 : top - 1], prod[..., top - 24 : top])
-    guard = b.mux(hi, prod[..., top - 26], prod[..., top - 25])
-    sticky = b.or_(or_all(b, prod[..., : top - 26]), b.and_(hi, prod[..., top - 26]))
+    sig = b.mux(hi[..., None], prod[..., top - p - 1 : top - 1], prod[..., top - p : top])
+    guard = b.mux(hi, prod[..., top - p - 2], prod[..., top - p - 1])
+    sticky = b.or_(or_all(b, prod[..., : top - p - 2]), b.and_(hi, prod[..., top - p - 2]))
     e1 = add(b, e_sum, np.zeros(10, np.int32), hi)
     return round_pack(b, sign, e1, sig, guard, sticky, zero=zero, inf=inf, nan=nan)
 
 
-def fmul(b: CircuitBuilder, x: Word, y: Word) -> Word:
-    """x * y as float32 words."""
+def fmul(b: CircuitBuilder, x: Word, y: Word, frac: int = FRAC) -> Word:
+    """x * y as float32 words, or in the narrow format with ``frac`` fraction bits."""
+    check_frac(frac)
     x, y = broadcast_lead(x, y)
-    sx, ex, fx = fields(x)
-    sy, ey, fy = fields(y)
+    sx, ex, fx = fields(x, frac)
+    sy, ey, fy = fields(y, frac)
     zero = b.not_(b.and_(nonzero_exp(b, ex), nonzero_exp(b, ey)))
     inf = b.or_(and_all(b, ex), and_all(b, ey))
     lead = x.shape[:-1]
     one = np.full(lead + (1,), ONE, np.int32)
-    prod = mul(b, cat(fx, one), cat(fy, one))             # 48 bits, value in [1, 4) * 2^46
+    prod = mul(b, cat(fx, one), cat(fy, one))             # 2p bits, value in [1, 4) * 2^(2p-2)
     e_sum = add(b, add(b, zext(ex, 10), zext(ey, 10)), const(-128, 10))
-    return _finish(b, b.xor(sx, sy), e_sum, prod, 24, zero, inf, b.and_(inf, zero))
+    return _finish(b, b.xor(sx, sy), e_sum, prod, frac + 1, zero, inf, b.and_(inf, zero))
 
 
 def fmul_const(b: CircuitBuilder, x: Word, c: float) -> Word:

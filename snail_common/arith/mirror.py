@@ -6,6 +6,12 @@ are normal or zero. Rules: a subnormal input is read as a zero of its sign; a re
 numpy would return as a subnormal becomes a zero of its sign; overflow is a signed
 infinity (as in numpy). Comparisons read subnormals as zeros too; min/max/select/neg/abs
 pass their inputs through bit for bit.
+
+Narrow formats (``frac`` < 23 fraction bits, see snail_common.arith.fbits): add, sub and
+mul read the top ``frac`` fraction bits of each input, compute in float64 and round once
+with ``narrow_round``. A float64 sum or product of such inputs rounded again to frac + 1
+<= 24 significant bits is the correctly rounded result: 53 >= 2 (frac + 1) + 2, so the
+double rounding is innocuous (Figueroa's theorem for +, -, *).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 TINY = np.float32(2.0 ** -126)
+FRAC = 23
 
 
 def f32(x) -> np.ndarray:
@@ -32,16 +39,54 @@ def _op(fn, *args) -> np.ndarray:
         return ftz(fn(*(ftz(a) for a in args)))
 
 
-def add(x, y):
+def add(x, y, frac: int = FRAC):
+    if frac < FRAC:
+        return narrow_round(_wide(x, frac) + _wide(y, frac), frac)
     return _op(np.add, x, y)
 
 
-def sub(x, y):
+def sub(x, y, frac: int = FRAC):
+    if frac < FRAC:
+        return narrow_round(_wide(x, frac) - _wide(y, frac), frac)
     return _op(np.subtract, x, y)
 
 
-def mul(x, y):
+def mul(x, y, frac: int = FRAC):
+    if frac < FRAC:
+        return narrow_round(_wide(x, frac) * _wide(y, frac), frac)
     return _op(np.multiply, x, y)
+
+
+def truncate(x, frac: int) -> np.ndarray:
+    """What a narrow op reads of a float32: its top ``frac`` fraction bits, FTZ."""
+    mask = np.uint32((0xFFFFFFFF << (FRAC - frac)) & 0xFFFFFFFF)
+    return ftz(from_bits(bits(x) & mask))
+
+
+def _wide(x, frac: int) -> np.ndarray:
+    return truncate(x, frac).astype(np.float64)
+
+
+def narrow_round(v, frac: int) -> np.ndarray:
+    """float64 -> nearest even with ``frac`` fraction bits and an unbounded exponent, then
+    below 2^-126 a signed zero and from 2^128 a signed infinity; as float32 (finite v)."""
+    v = np.array(v, dtype=np.float64)  # a fresh contiguous copy, any shape
+    drop = np.uint64(52 - frac)
+    u = v.view(np.uint64)
+    half = np.uint64((1 << (52 - frac - 1)) - 1)
+    r = ((u + half + ((u >> drop) & np.uint64(1))) >> drop << drop).view(np.float64)
+    with np.errstate(over="ignore"):
+        out = r.astype(np.float32)
+    out = np.where(np.abs(r) < 2.0 ** -126, np.copysign(np.float32(0), r), out)
+    return np.where(np.abs(r) >= 2.0 ** 128, np.copysign(np.float32(np.inf), r),
+                    out).astype(np.float32)
+
+
+def fround(x, frac: int) -> np.ndarray:
+    """float32 -> the narrow format (the circuit's fround), finite x."""
+    if frac == FRAC:
+        return f32(x)
+    return narrow_round(ftz(x).astype(np.float64), frac)
 
 
 def div(x, y):

@@ -28,7 +28,6 @@ from .builder import CircuitBuilder
 from .ir import Circuit
 from .schedule import Schedule
 
-OPS_VERSION = 1
 MAX_OPS = 4096
 MAX_ID_LENGTH = 128
 LRU_SIZE = 4
@@ -124,7 +123,7 @@ def _ops(circuit_id: str, rest: str) -> tuple[str, Callable[[], Circuit]]:
         raise UnknownCircuit(f"unknown op {op!r} in {circuit_id!r} (known: {', '.join(OPS)})")
     if count > MAX_OPS:
         raise UnknownCircuit(f"op count {count} in {circuit_id!r} exceeds {MAX_OPS}")
-    return f"ops-v{OPS_VERSION}-{op}-x{count}", lambda: build_ops(op, count)
+    return f"ops-{op}-x{count}", lambda: build_ops(op, count)
 
 
 def build_ops(op: str, count: int) -> Circuit:
@@ -143,4 +142,8 @@ def _loc(circuit_id: str, rest: str) -> tuple[str, Callable[[], Circuit]]:
     if not loc.ID_PATTERN.match(rest):
         raise UnknownCircuit(f"malformed localization circuit id {circuit_id!r} "
                              f"(expected e.g. 'loc/lm-sil-ldlt-n6')")
-    return f"loc-v{loc.VERSION}-{rest}", lambda: loc.build_from_id(rest)
+    try:
+        spec = loc.Spec.parse(rest)
+    except ValueError as e:
+        raise UnknownCircuit(f"{circuit_id!r}: {e}") from None
+    return spec.cache_name, lambda: loc.build(spec)

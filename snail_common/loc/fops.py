@@ -17,15 +17,32 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from snail_common.arith import fadd, fcmp, fdiv, fmul, fsqrt
+from snail_common.arith import fadd, fcmp, fconvert, fdiv, fmul, fsqrt
 from snail_common.arith import mirror as m
+from snail_common.arith.fbits import FRAC, check_frac
 from snail_common.arith.fconst import fconst
 from snail_common.circuit import CircuitBuilder
 
 Scalar = float | int
 
 
-class MirrorBackend:
+class _Precision:
+    """The fraction width of +, - and * (float32: 23): ``narrow(frac)`` switches them to a
+    narrow format for a block of code; other ops stay float32, which narrow values are."""
+
+    frac = FRAC
+
+    @contextlib.contextmanager
+    def narrow(self, frac: int) -> Iterator[None]:
+        check_frac(frac)
+        saved, self.frac = self.frac, frac
+        try:
+            yield
+        finally:
+            self.frac = saved
+
+
+class MirrorBackend(_Precision):
     """numpy float32 with the circuits' flush-to-zero rules (snail_common.arith.mirror)."""
 
     @contextlib.contextmanager
@@ -40,13 +57,16 @@ class MirrorBackend:
         return np.full(shape, np.float32(value), dtype=np.float32)
 
     def add(self, x, y):
-        return m.add(x, y)
+        return m.add(x, y, self.frac)
 
     def sub(self, x, y):
-        return m.sub(x, y)
+        return m.sub(x, y, self.frac)
 
     def mul(self, x, y):
-        return m.mul(x, y)
+        return m.mul(x, y, self.frac)
+
+    def round(self, x, frac: int):
+        return m.fround(x, frac)
 
     def mul_const(self, x, c: float):
         return m.mul_const(x, c)
@@ -73,23 +93,24 @@ class MirrorBackend:
         return np.concatenate([np.asarray(v, np.float32) for v in vs], axis=axis)
 
 
-class CircuitBackend:
+class CircuitBackend(_Precision):
     """Emits float32 circuits into ``builder``. ``depth_opt`` picks the shallow division and
-    square root (more AND gates, far fewer AND levels); inside ``shallow()`` additions are
-    depth-optimized too, for the sequential chain of the 6x6 solve."""
+    square root (more AND gates, far fewer AND levels); inside ``shallow()`` divisions,
+    square roots and additions are all depth-optimized, for the sequential chain of the
+    6x6 solve."""
 
     def __init__(self, builder: CircuitBuilder, depth_opt: bool = True) -> None:
         self.b = builder
         self.depth_opt = depth_opt
-        self.shallow_add = False
+        self.in_shallow = False
 
     @contextlib.contextmanager
     def shallow(self) -> Iterator[None]:
-        saved, self.shallow_add = self.shallow_add, True
+        saved, self.in_shallow = self.in_shallow, True
         try:
             yield
         finally:
-            self.shallow_add = saved
+            self.in_shallow = saved
 
     def shape(self, v: np.ndarray) -> tuple[int, ...]:
         return np.shape(v)[:-1]
@@ -98,22 +119,25 @@ class CircuitBackend:
         return fconst(value, shape)
 
     def add(self, x, y):
-        return fadd.fadd(self.b, x, y, depth_opt=self.shallow_add)
+        return fadd.fadd(self.b, x, y, depth_opt=self.in_shallow, frac=self.frac)
 
     def sub(self, x, y):
-        return fadd.fsub(self.b, x, y, depth_opt=self.shallow_add)
+        return fadd.fsub(self.b, x, y, depth_opt=self.in_shallow, frac=self.frac)
 
     def mul(self, x, y):
-        return fmul.fmul(self.b, x, y)
+        return fmul.fmul(self.b, x, y, frac=self.frac)
+
+    def round(self, x, frac: int):
+        return fconvert.fround(self.b, x, frac)
 
     def mul_const(self, x, c: float):
         return fmul.fmul_const(self.b, x, c)
 
     def div(self, x, y):
-        return fdiv.fdiv(self.b, x, y, depth_opt=self.depth_opt)
+        return fdiv.fdiv(self.b, x, y, depth_opt=self.depth_opt or self.in_shallow)
 
     def sqrt(self, x):
-        return fsqrt.fsqrt(self.b, x, depth_opt=self.depth_opt)
+        return fsqrt.fsqrt(self.b, x, depth_opt=self.depth_opt or self.in_shallow)
 
     def neg(self, x):
         return fcmp.fneg(self.b, x)
@@ -195,6 +219,10 @@ class F:
 
     def sqrt(self) -> F:
         return F(self.be, self.be.sqrt(self.v))
+
+    def round(self, frac: int) -> F:
+        """Rounded to nearest even with ``frac`` fraction bits (still a float32 value)."""
+        return F(self.be, self.be.round(self.v, frac))
 
     def lt(self, other) -> Cond:
         return Cond(self.be, self.be.lt(self.v, self._lift(other).v))

@@ -17,7 +17,7 @@ every affected entry in a single batch. No trigonometry.
 from __future__ import annotations
 
 from .fops import Cond, F, concat, const, stack
-from .normal import UPPER, residuals
+from .normal import UPPER, jacobian, residuals
 
 SIL_SWEEPS = 12  # 2 per singular value, as the paper argues
 DO_SWEEPS = 30  # the paper's data-oblivious baseline
@@ -52,16 +52,13 @@ def weighted_system(R: F, t: F, image: F, world: F, weights: F) -> tuple[F, F, F
     points first, then the v rows. The cost is r^T W r summed exactly as in
     normal.normal_equations, so it is bit-identical to the LDL^T program's cost."""
     proj, err, c = residuals(R, t, image, world)
-    a, b = proj[:, 0], proj[:, 1]
-    prods = stack([a, b, a, a, b], 1) * stack([a, b, b, c, c], 1)
-    aa, bb, ab, ac, bc = (prods[:, i] for i in range(5))
-    one_plus = stack([aa, bb], 1) + 1.0
+    jac = jacobian(proj, c)
     cost_pt = (err * weights) * err
     cost = (cost_pt[:, 0] + cost_pt[:, 1]).sum(0)
     root = weights.sqrt()
-    ju = stack([c, -ac, -ab, one_plus[:, 0], -b, err[:, 0]], 1) * root[:, 0:1]
-    jv = stack([c, -bc, -one_plus[:, 1], ab, a, err[:, 1]], 1) * root[:, 1:2]
-    zero = const(R.be, 0.0, (len(a), 1))
+    ju = concat([jac[:, 0], err[:, 0:1]], 1) * root[:, 0:1]
+    jv = concat([jac[:, 1], err[:, 1:2]], 1) * root[:, 1:2]
+    zero = const(R.be, 0.0, (len(err), 1))
     rows_u = concat([ju[:, 0:1], zero, ju[:, 1:5]], 1)
     rows_v = concat([zero, jv[:, 0:5]], 1)
     return concat([rows_u, rows_v]), concat([ju[:, 5], jv[:, 5]]), cost
