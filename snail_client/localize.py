@@ -1,18 +1,25 @@
-"""Localize one image (or a sequence) with the client's LM/GN driver, one secure SIL
-iteration per step, and report a ``snail-result/1`` record.
+"""Localize one image (or a sequence) and report a ``snail-result/1`` record.
 
-Backends: ``garbled`` (the product: every iteration is a garbled run between the two
-servers; without addresses both daemons start on loopback), ``cleartext`` (the same
-circuit evaluated in the clear) and ``float64`` (the plain reference), for debugging.
+Modes: ``sil`` (the product: the client's LM/GN driver, one secure single-iteration run
+per step) and ``do`` (the paper's data-oblivious baseline: one secure run of a circuit
+holding a fixed number of LM iterations; ``converged`` then says whether the last of them
+changed the cost by at most the driver's cost tolerance).
 
-Privacy policy: the servers see how many invocations a session makes, so a garbled
+Backends: ``garbled`` (every run is garbled between the two servers; without addresses
+both daemons start on loopback), ``cleartext`` (the same circuit evaluated in the clear)
+and ``float64`` (the plain reference: the LM/GN driver, or the DO iteration in float64),
+for debugging.
+
+Privacy policy: the servers see how many invocations a session makes, so a garbled SIL
 session makes at least ``min_invocations``, padding with runs on fresh random input bits
-(indistinguishable to the servers) when the driver stops early.
+(indistinguishable to the servers) when the driver stops early. A DO frame is always
+exactly one invocation, whatever the data, so it needs no padding.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import time
 from collections.abc import Iterator
@@ -20,14 +27,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from snail_common.loc.backends import CircuitIteration, compiled
-from snail_common.loc.circuits import Spec
-from snail_common.loc.driver import run
+from snail_common.loc.backends import (
+    BitRunner,
+    CircuitIteration,
+    cleartext_runner,
+    compiled,
+    run_circuit,
+    sil_values,
+)
+from snail_common.loc.circuits import DO_ITERATIONS, DO_MAX_ITERATIONS, Spec
+from snail_common.loc.do import do_reference
+from snail_common.loc.driver import COST_TOL, LAMBDA_START, run
 from snail_common.loc.geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
 from snail_common.loc.preprocess import normalize, pad
 from snail_common.loc.problem import PoseVectors, Problem, check_in_front
 from snail_common.loc.reference import iteration_float64, reprojection_rms
-from snail_common.loc.types import IterationBackend
+from snail_common.loc.types import IterationBackend, Normalized, Pose
 
 from .embedded import embedded_services
 from .secure import LINKS, SecureRunner
@@ -50,6 +65,7 @@ class Options:
     garbler: str | None = None
     evaluator: str | None = None
     tls_dir: str | None = None
+    do_iterations: int = DO_ITERATIONS
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
@@ -58,9 +74,13 @@ class Options:
             raise ValueError("--max-iterations: must be at least 1")
         if self.min_invocations < 0 or self.pad_points < 0:
             raise ValueError("--min-invocations/--pad-points: must not be negative")
-        if self.mode != "sil":
-            raise ValueError("--mode: only 'sil' is served yet; the data-oblivious baseline "
-                             "is built and measured by `snail-bench circuit --mode do`")
+        if self.mode not in ("sil", "do"):
+            raise ValueError(f"--mode: expected sil or do, got {self.mode!r}")
+        if self.mode == "do" and self.algorithm != "lm":
+            raise ValueError("--mode do: the data-oblivious baseline is LM only "
+                             "(use --algorithm lm)")
+        if not 1 <= self.do_iterations <= DO_MAX_ITERATIONS:
+            raise ValueError(f"--do-iterations: must be in 1..{DO_MAX_ITERATIONS}")
         remote = (self.garbler, self.evaluator, self.tls_dir)
         if any(remote) and not all(remote):
             raise ValueError("--garbler, --evaluator and --tls-dir go together")
@@ -69,6 +89,23 @@ class Options:
         if self.pad_points <= 1:
             return n
         return -(-n // self.pad_points) * self.pad_points
+
+    def spec(self, n: int) -> Spec:
+        """The circuit a problem of ``n`` points runs on."""
+        iterations = self.do_iterations if self.mode == "do" else DO_ITERATIONS
+        return Spec(self.algorithm, self.mode, self.solver, self.circuit_points(n), iterations)
+
+
+@dataclass(frozen=True)
+class _Outcome:
+    """A solved frame in the normalized frame, whichever mode solved it."""
+
+    pose: Pose
+    cost: float
+    iterations: int
+    converged: bool
+    calls: int  # backend calls (secure invocations are counted by the runner)
+    walls: list[float]
 
 
 @contextlib.contextmanager
@@ -87,13 +124,45 @@ def secure_runner(options: Options) -> Iterator[SecureRunner | None]:
         yield runner
 
 
-def _backend(spec: Spec, options: Options, runner: SecureRunner | None) -> IterationBackend:
-    if options.backend == "float64":
-        return iteration_float64
+def _bit_runner(options: Options, runner: SecureRunner | None) -> BitRunner:
     if options.backend == "cleartext":
-        return CircuitIteration(spec)
-    assert runner is not None
-    return CircuitIteration(spec, lambda cid, bits: runner.run(f"loc/{cid}", bits))
+        return cleartext_runner
+    if runner is None:
+        raise ValueError("--backend garbled: needs a connected secure runner")
+    return lambda cid, bits: runner.run(f"loc/{cid}", bits)
+
+
+def _solve_sil(spec: Spec, options: Options, runner: SecureRunner | None, nrm: Normalized,
+               pose0: Pose) -> _Outcome:
+    """The client's LM/GN driver, one SIL run per step, padded to min_invocations."""
+    backend: IterationBackend = iteration_float64 if options.backend == "float64" else \
+        CircuitIteration(spec, _bit_runner(options, runner))
+    first_invocation = runner.invocations if runner else 0
+    result = run(options.algorithm, nrm, pose0, backend, options.max_iterations)
+    if runner is not None:
+        _pad_invocations(runner, spec, first_invocation + options.min_invocations)
+    return _Outcome(result.pose, float(result.cost), result.iterations, result.converged,
+                    result.invocations, [call.wall_s for call in result.history])
+
+
+def _solve_do(spec: Spec, options: Options, runner: SecureRunner | None, nrm: Normalized,
+              pose0: Pose) -> _Outcome:
+    """One run of the data-oblivious circuit (or its float64 reference) from pose0."""
+    values = sil_values(spec, nrm, pose0, LAMBDA_START)
+    if options.backend != "float64":
+        compiled(spec)  # build or load before the clock starts, as SIL does
+    start = time.perf_counter()
+    if options.backend == "float64":
+        *_, before, final = do_reference(values, spec.solver, spec.iterations)
+        out = {"R": final["R"], "t": final["t"], "cost": final["cost"],
+               "previous_cost": before["cost"]}
+    else:
+        out = run_circuit(spec, _bit_runner(options, runner), values)
+    wall = time.perf_counter() - start
+    cost, previous = float(out["cost"]), float(out["previous_cost"])
+    converged = math.isfinite(cost) and previous - cost <= COST_TOL * previous
+    pose = Pose(np.asarray(out["R"], np.float64), np.asarray(out["t"], np.float64))
+    return _Outcome(pose, cost, spec.iterations, converged, 1, [wall])
 
 
 def _pad_invocations(runner: SecureRunner, spec: Spec, target: int) -> None:
@@ -114,18 +183,15 @@ def localize(problem: Problem, options: Options, runner: SecureRunner | None = N
         raise ValueError("initial_pose: required for the first frame")
     check_in_front(problem, pose_vectors)
     nrm, frame = normalize(problem)
-    spec = Spec(options.algorithm, options.mode, options.solver,
-                options.circuit_points(problem.n))
+    spec = options.spec(problem.n)
     nrm = pad(nrm, spec.points) if spec.points != nrm.n else nrm
     first_invocation = runner.invocations if runner else 0
     totals_before = dict(runner.totals) if runner else {}
-    backend = _backend(spec, options, runner)
     pose0 = frame.to_normalized(pose_from_rvec_tvec(pose_vectors.rvec, pose_vectors.tvec))
-    result = run(options.algorithm, nrm, pose0, backend, options.max_iterations)
-    if runner is not None:
-        _pad_invocations(runner, spec, first_invocation + options.min_invocations)
+    solve = _solve_do if options.mode == "do" else _solve_sil
+    result = solve(spec, options, runner, nrm, pose0)
     rvec, tvec = pose_to_rvec_tvec(frame.to_original(result.pose))
-    invocations = (runner.invocations - first_invocation) if runner else result.invocations
+    invocations = (runner.invocations - first_invocation) if runner else result.calls
     traffic = {link: (runner.totals.get(link, 0) - totals_before.get(link, 0)) if runner else 0
                for link in LINKS}
     record = {
@@ -137,7 +203,7 @@ def localize(problem: Problem, options: Options, runner: SecureRunner | None = N
         "algorithm": options.algorithm, "mode": options.mode, "solver": options.solver,
         "backend": options.backend,
         "timing": {"total_s": time.perf_counter() - start,
-                   "per_iteration_s": [call.wall_s for call in result.history]},
+                   "per_iteration_s": result.walls},
         "traffic": traffic,
     }
     if options.backend != "float64":

@@ -27,8 +27,12 @@ def _options(fn: Callable) -> Callable:
                      show_default=True, help="Levenberg-Marquardt or Gauss-Newton."),
         click.option("--mode", type=click.Choice(["sil", "do"]), default="sil",
                      show_default=True,
-                     help="sil: one secure run per iteration, the client drives LM; do: the "
-                          "data-oblivious baseline, all iterations in one circuit."),
+                     help="sil: one secure run per iteration, the client drives LM/GN; do: "
+                          "the paper's data-oblivious baseline, a fixed number of LM "
+                          "iterations in one (much larger) circuit, one run per frame."),
+        click.option("--do-iterations", type=click.IntRange(1, 99), default=20,
+                     show_default=True,
+                     help="LM iterations inside the --mode do circuit (the paper uses 20)."),
         click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt",
                      show_default=True, help="6x6 solver inside the circuit."),
         click.option("--backend", type=click.Choice(BACKENDS), default="garbled",
@@ -40,7 +44,8 @@ def _options(fn: Callable) -> Callable:
         click.option("--min-invocations", type=click.IntRange(0, 10000), default=20,
                      show_default=True,
                      help="Secure runs per frame at least (padded with dummy runs) so the "
-                          "servers cannot tell how fast it converged."),
+                          "servers cannot tell how fast it converged. --mode do makes "
+                          "exactly one run per frame whatever the data, and is not padded."),
         click.option("--pad-points", type=click.IntRange(0, 4096), default=0,
                      show_default=True,
                      help="Round the number of points up to a multiple of this with "
@@ -64,7 +69,7 @@ def _make_options(kw: dict) -> Options:
     try:
         return Options(kw["algorithm"], kw["mode"], kw["solver"], kw["backend"],
                        kw["max_iterations"], kw["min_invocations"], kw["pad_points"],
-                       kw["garbler"], kw["evaluator"], kw["tls_dir"])
+                       kw["garbler"], kw["evaluator"], kw["tls_dir"], kw["do_iterations"])
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 

@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from shared_paths import EXAMPLES
 
@@ -15,6 +16,7 @@ from snail_client.embedded import embedded_services
 from snail_client.localize import Options, localize
 from snail_client.secure import SecureRunner
 from snail_common.loc.problem import load_problem
+from snail_common.loc.reference import reprojection_rms
 
 SMALL_EXAMPLES = ["apriltag_4corners.json", "synthetic_n6.json", "synthetic_n12.json"]
 
@@ -45,6 +47,34 @@ def test_session_is_padded_to_min_invocations(runner):
     assert len(result["timing"]["per_iteration_s"]) < 7  # padding is not an iteration
 
 
+def test_do_mode_garbled_equals_cleartext_in_one_invocation(runner):
+    """The data-oblivious baseline (2 iterations here, 20 by default): one secure run per
+    frame, not padded to min_invocations, bit-identical to the cleartext circuit, and
+    better than the start."""
+    problem = load_problem(EXAMPLES / "apriltag_4corners.json")
+    garbled = localize(problem, Options(mode="do", do_iterations=2), runner)
+    clear = localize(problem, Options(mode="do", do_iterations=2, backend="cleartext"))
+    assert garbled["rvec"] == clear["rvec"] and garbled["tvec"] == clear["tvec"]
+    assert garbled["cost"] == clear["cost"]
+    assert garbled["mode"] == "do" and garbled["iterations"] == 2
+    assert garbled["invocations"] == 1 and len(garbled["timing"]["per_iteration_s"]) == 1
+    assert garbled["traffic"]["garbler_to_evaluator"] >= 32 * garbled["circuit"]["and"]
+    initial = reprojection_rms(problem, problem.initial_pose.rvec, problem.initial_pose.tvec)
+    assert garbled["rms_px"] < 0.5 * initial
+
+
+def test_do_mode_reaches_the_sil_pose():
+    problem = load_problem(EXAMPLES / "synthetic_n12.json")
+    do = localize(problem, Options(mode="do", backend="float64"))
+    sil = localize(problem, Options(backend="float64"))
+    assert do["converged"] and do["iterations"] == 20 and do["invocations"] == 1
+    # the SIL driver stops once a step is below its 1e-5 tolerance; DO runs all 20
+    np.testing.assert_allclose(do["rvec"], sil["rvec"], atol=1e-5)
+    tvec = np.asarray(sil["tvec"])
+    assert np.abs(np.asarray(do["tvec"]) - tvec).max() < 1e-5 * np.linalg.norm(tvec)
+    assert abs(do["rms_px"] - sil["rms_px"]) < 1e-4
+
+
 def _cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "snail_client", *args],
                           capture_output=True, text=True, timeout=300)
@@ -72,6 +102,16 @@ def test_cli_bad_problem_exits_2_naming_the_field(tmp_path, patch, field):
     out = _cli("localize", "--input", str(path), "--backend", "float64")
     assert out.returncode == 2
     assert field in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(("args", "flag"), [
+    (("--mode", "do", "--algorithm", "gn"), "--mode"),
+    (("--do-iterations", "0"), "--do-iterations"),
+])
+def test_cli_bad_mode_options_are_usage_errors(args, flag):
+    out = _cli("localize", "--input", str(EXAMPLES / "synthetic_n6.json"), "--backend",
+               "float64", *args)
+    assert out.returncode == 2 and flag in out.stderr
 
 
 def test_cli_half_remote_addresses_is_a_usage_error():

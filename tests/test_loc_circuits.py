@@ -115,15 +115,19 @@ def test_circuit_iteration_decodes_step_and_cost(compiled):
 
 
 @pytest.mark.parametrize("text", ["lm-sil-ldlt-n3", "lm-sil-qr-n6", "xx-sil-ldlt-n6",
-                                  "lm-sil-ldlt-n06", "lm-sil-ldlt-n99999", "lm-sil-ldlt-6"])
+                                  "lm-sil-ldlt-n06", "lm-sil-ldlt-n99999", "lm-sil-ldlt-6",
+                                  "lm-do-ldlt-n6-i0", "lm-do-ldlt-n6-i100", "lm-sil-ldlt-n6-i2",
+                                  "gn-do-ldlt-n6"])
 def test_bad_circuit_ids_are_rejected(text):
-    with pytest.raises(ValueError, match=r"circuit id|points must be"):
+    with pytest.raises(ValueError, match=r"circuit id|points must be|iteration|must be lm"):
         Spec.parse(text)
 
 
-def test_circuit_id_round_trip():
-    spec = Spec("gn", "sil", "ldlt", 64)
+@pytest.mark.parametrize("spec", [Spec("gn", "sil", "ldlt", 64), Spec(mode="do"),
+                                  Spec(mode="do", solver="svd", points=4, iterations=2)])
+def test_circuit_id_round_trip(spec):
     assert Spec.parse(spec.circuit_id) == spec
+    assert spec.circuit_id.endswith("-i2") == (spec.iterations == 2)
 
 
 def test_wrong_point_count_is_named():

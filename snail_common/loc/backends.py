@@ -33,7 +33,8 @@ def compiled(spec: Spec) -> tuple[Circuit, Schedule]:
 
 
 def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> dict[str, np.ndarray]:
-    """The SIL circuit's float32 inputs for one iteration at ``pose``."""
+    """The float32 inputs of a SIL circuit for one iteration at ``pose``, or of a DO circuit
+    starting there (its inputs are named like the SIL LM circuit's)."""
     if problem.n != spec.points:
         raise ValueError(f"circuit {spec.circuit_id} takes {spec.points} points, "
                          f"the problem has {problem.n}")
@@ -51,17 +52,24 @@ def cleartext_runner(circuit_id: str, bits: np.ndarray) -> np.ndarray:
     return evaluate_bits(schedule, bits[None])[0]
 
 
+def run_circuit(spec: Spec, runner: BitRunner, values: dict[str, np.ndarray]
+                ) -> dict[str, np.ndarray]:
+    """Encode ``values``, run the circuit of ``spec`` through ``runner``, decode the outputs."""
+    circuit, _ = compiled(spec)
+    bits = encode_inputs(circuit, values)[0]
+    return decode_outputs(circuit, runner(spec.circuit_id, bits))
+
+
 class CircuitIteration:
     """An ``IterationBackend`` that runs the SIL circuit of ``spec`` through ``runner``."""
 
     def __init__(self, spec: Spec, runner: BitRunner = cleartext_runner) -> None:
         self.spec = spec
         self.runner = runner
-        self.circuit, _ = compiled(spec)
+        compiled(spec)  # build or load now, not inside the first timed call
 
     def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
-        bits = encode_inputs(self.circuit, sil_values(self.spec, problem, pose, lam))[0]
-        out = decode_outputs(self.circuit, self.runner(self.spec.circuit_id, bits))
+        out = run_circuit(self.spec, self.runner, sil_values(self.spec, problem, pose, lam))
         return IterationResult(step=np.asarray(out["step"], np.float64),
                                cost=float(out["cost"]))
 

@@ -15,6 +15,8 @@ import numpy as np
 from snail_common.circuit import CircuitBuilder
 from snail_common.circuit.ir import Circuit
 
+from .do import ITERATIONS as DO_ITERATIONS
+from .do import MAX_ITERATIONS as DO_MAX_ITERATIONS
 from .do import OUTPUT_SHAPES as DO_OUTPUT_SHAPES
 from .do import do_program
 from .fops import CircuitBackend, F, MirrorBackend
@@ -27,17 +29,20 @@ MAX_POINTS = 4096
 # below ~50 points at ~10 M AND/s.
 SHALLOW_POINTS = 32
 ID_PATTERN = re.compile(r"^(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"
-                        r"-n(?P<points>[1-9][0-9]{0,3})$")
+                        r"-n(?P<points>[1-9][0-9]{0,3})(?:-i(?P<iterations>[1-9][0-9]?))?$")
 
 
 @dataclass(frozen=True)
 class Spec:
-    """What a localization circuit computes; ``circuit_id`` is its public name."""
+    """What a localization circuit computes; ``circuit_id`` is its public name.
+    ``iterations`` is the DO circuit's fixed LM iteration count (named in the id with
+    ``-iK`` when it is not the default)."""
 
     algorithm: str = "lm"
     mode: str = "sil"
     solver: str = "ldlt"
     points: int = 6
+    iterations: int = DO_ITERATIONS
 
     def __post_init__(self) -> None:
         if self.algorithm not in ALGORITHMS:
@@ -50,10 +55,17 @@ class Spec:
             raise ValueError("mode 'do' is the data-oblivious LM baseline: algorithm must be lm")
         if not 4 <= self.points <= MAX_POINTS:
             raise ValueError(f"points must be in 4..{MAX_POINTS}, got {self.points}")
+        if not 1 <= self.iterations <= DO_MAX_ITERATIONS:
+            raise ValueError(f"iterations must be in 1..{DO_MAX_ITERATIONS}, "
+                             f"got {self.iterations}")
+        if self.mode == "sil" and self.iterations != DO_ITERATIONS:
+            raise ValueError("iterations: a SIL circuit runs one iteration (only 'do' takes "
+                             "an iteration count)")
 
     @property
     def circuit_id(self) -> str:
-        return f"{self.algorithm}-{self.mode}-{self.solver}-n{self.points}"
+        base = f"{self.algorithm}-{self.mode}-{self.solver}-n{self.points}"
+        return base if self.iterations == DO_ITERATIONS else f"{base}-i{self.iterations}"
 
     @property
     def cache_name(self) -> str:
@@ -65,7 +77,9 @@ class Spec:
         if not match:
             raise ValueError(f"not a localization circuit id: {circuit_id!r} "
                              f"(expected e.g. 'lm-sil-ldlt-n6')")
-        return cls(match["algorithm"], match["mode"], match["solver"], int(match["points"]))
+        iterations = int(match["iterations"] or DO_ITERATIONS)
+        return cls(match["algorithm"], match["mode"], match["solver"], int(match["points"]),
+                   iterations)
 
 
 def build(spec: Spec) -> Circuit:
@@ -87,7 +101,7 @@ def output_shapes(spec: Spec) -> dict[str, tuple[int, ...]]:
 
 def program(spec: Spec, inputs: dict[str, F]) -> dict[str, F]:
     if spec.mode == "do":
-        return do_program(inputs, spec.solver)
+        return do_program(inputs, spec.solver, spec.iterations)
     return sil_program(inputs, spec.algorithm, spec.solver)
 
 

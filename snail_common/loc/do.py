@@ -28,9 +28,12 @@ from .svd import DO_SWEEPS, REL_TOL, svd_solve
 
 SOLVERS = ("ldlt", "svd")
 ITERATIONS = 20
+MAX_ITERATIONS = 99
 LAMBDA_MIN = 1e-8
 LAMBDA_MAX = 1e8
-OUTPUT_SHAPES = {"R": (3, 3), "t": (3,), "cost": ()}
+# previous_cost: the cost before the last iteration, so the client can tell whether the
+# fixed budget ended at a stationary point (same cost tolerance as the SIL driver)
+OUTPUT_SHAPES = {"R": (3, 3), "t": (3,), "cost": (), "previous_cost": ()}
 
 
 @dataclass(frozen=True)
@@ -48,16 +51,17 @@ class State:
 def do_program(inputs: dict[str, F], solver: str, iterations: int = ITERATIONS,
                sweeps: int = DO_SWEEPS) -> dict[str, F]:
     """``iterations`` oblivious LM iterations from the input pose (inputs named as the SIL
-    LM circuit's: R, t, lam, image, world, weights); returns the final pose and its cost."""
-    final = do_states(inputs, solver, iterations, sweeps)[-1]
-    return {"R": final.R, "t": final.t, "cost": final.cost}
+    LM circuit's: R, t, lam, image, world, weights); returns the final pose, its cost and
+    the cost before the last iteration."""
+    *_, before, final = do_states(inputs, solver, iterations, sweeps)
+    return {"R": final.R, "t": final.t, "cost": final.cost, "previous_cost": before.cost}
 
 
 def do_states(inputs: dict[str, F], solver: str, iterations: int = ITERATIONS,
               sweeps: int = DO_SWEEPS) -> list[State]:
     """The state before every iteration and after the last (iterations + 1 states)."""
-    if iterations < 1:
-        raise ValueError(f"iterations must be positive, got {iterations}")
+    if not 1 <= iterations <= MAX_ITERATIONS:
+        raise ValueError(f"iterations must be in 1..{MAX_ITERATIONS}, got {iterations}")
     solve = _solver(solver, sweeps)
     data = (inputs["image"], inputs["world"], inputs["weights"])
     state = State(inputs["R"], inputs["t"], inputs["lam"],
