@@ -18,7 +18,7 @@ from snail_client.secure import SecureRunner
 from snail_common.loc.problem import load_problem
 from snail_common.loc.reference import reprojection_rms
 
-SMALL_EXAMPLES = ["apriltag_4corners.json", "synthetic_n6.json", "synthetic_n12.json"]
+ALL_EXAMPLES = sorted(path.name for path in EXAMPLES.glob("*.json"))
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +28,7 @@ def runner():
         yield secure
 
 
-@pytest.mark.parametrize("name", SMALL_EXAMPLES)
+@pytest.mark.parametrize("name", ALL_EXAMPLES)
 def test_garbled_pose_equals_cleartext_pose(runner, name):
     problem = load_problem(EXAMPLES / name)
     garbled = localize(problem, Options(backend="garbled", min_invocations=0), runner)
