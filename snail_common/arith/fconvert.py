@@ -53,7 +53,7 @@ def f2i(b: CircuitBuilder, x: Word) -> Word:
 
 def fround(b: CircuitBuilder, x: Word, frac: int) -> Word:
     """float32 -> the narrow format with ``frac`` fraction bits, round to nearest even
-    (about 2 frac + 30 AND gates). Zeros and subnormals give signed zeros, rounding up
+    (at most frac + 47 AND gates). Zeros and subnormals give signed zeros, rounding up
     from the largest binade gives an infinity; infinities and NaN are not rounded (a NaN
     keeps its top payload bits, which may leave an infinity)."""
     check_frac(frac)
