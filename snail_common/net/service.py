@@ -191,10 +191,21 @@ class Daemon:
         await self.shutdown_extra()
         await asyncio.gather(*(c.close(messages.make("bye"), timeout=0.5)
                                for c in list(self.connections)), return_exceptions=True)
+        await self._drain_handlers(timeout=1.0)
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(server.wait_closed(), 1.0)
         self.pool.shutdown(wait=False, cancel_futures=True)
         announce(self.log, "stopped", **self.counters)
+
+    async def _drain_handlers(self, timeout: float) -> None:
+        """Let connection handlers log their ends before ``stopped`` (supervisors read
+        ``stopped`` as the last word); cancel any that overrun ``timeout``."""
+        if not self._tasks:
+            return
+        _, late = await asyncio.wait(set(self._tasks), timeout=timeout)
+        for task in late:
+            task.cancel()
+        await asyncio.gather(*late, return_exceptions=True)
 
     def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
         """asyncio's unhandled errors (e.g. failed TLS handshakes) as structured logs."""
