@@ -23,17 +23,19 @@ class _Growable:
 
     Grows and shrinks with ``ndarray.resize`` (realloc, which moves large blocks by
     remapping pages), so a 50 M-entry array never exists twice. Any ``view`` taken before
-    an ``extend`` is invalid afterwards: read what you need first.
+    an ``extend`` is invalid afterwards: read what you need first. ``growth`` below 2
+    trades more (cheap) reallocations for less unused capacity at the peak.
     """
 
-    def __init__(self, dtype, capacity: int = 1 << 12) -> None:
+    def __init__(self, dtype, capacity: int = 1 << 12, growth: float = 2.0) -> None:
         self._buf = np.empty(capacity, dtype=dtype)
         self.n = 0
+        self.growth = growth
 
     def extend(self, values: np.ndarray) -> None:
         k = values.size
         if self.n + k > self._buf.size:
-            self._buf.resize(max(2 * self._buf.size, self.n + k), refcheck=False)
+            self._buf.resize(max(int(self.growth * self._buf.size), self.n + k), refcheck=False)
         self._buf[self.n : self.n + k] = values.ravel()
         self.n += k
 

@@ -133,15 +133,18 @@ def schedule_circuit(circuit: Circuit, reuse_slots: bool = True,
     death = _order_rows(circuit, plan)
     slot_of, n_slots = _allocate_slots(circuit, plan, death, reuse_slots)
     del death
+    for arr in (plan.and_out, plan.and_a, plan.and_b, plan.lin_out, plan.lin_terms):
+        _to_slots(slot_of, arr)
+    output_slots = slot_of[circuit.outputs]
+    del slot_of  # before lin_ptr, 8 bytes a row: the two are the peak otherwise
     lin_ptr = np.zeros(plan.lin_lens.size + 1, np.int64)
-    np.cumsum(plan.lin_lens, out=lin_ptr[1:])
+    np.cumsum(plan.lin_lens, dtype=np.int64, out=lin_ptr[1:])
     return Schedule(
         n_inputs=circuit.n_inputs, n_slots=n_slots,
         step_kind=plan.kind, step_lo=plan.lo, step_hi=plan.hi,
-        and_out=_to_slots(slot_of, plan.and_out), and_a=_to_slots(slot_of, plan.and_a),
-        and_b=_to_slots(slot_of, plan.and_b), lin_out=_to_slots(slot_of, plan.lin_out),
-        lin_ptr=lin_ptr, lin_terms=_to_slots(slot_of, plan.lin_terms),
-        output_slots=slot_of[circuit.outputs], disjoint_io=True)
+        and_out=plan.and_out, and_a=plan.and_a, and_b=plan.and_b, lin_out=plan.lin_out,
+        lin_ptr=lin_ptr, lin_terms=plan.lin_terms, output_slots=output_slots,
+        disjoint_io=True)
 
 
 class _Plan(NamedTuple):
@@ -186,134 +189,143 @@ def _narrow(limit: int) -> type:
     return np.int16 if limit < 2**15 else np.int32
 
 
-class _Folder:
-    """Expands XOR logic layer by layer into leaf lists (see module docstring)."""
+def _depth_order(c: Circuit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gates sorted stably by (linear, AND-depth) in one pass, a radix sort when the keys
+    fit 16 bits: the AND gates by depth, then the linear gates by layer.
 
-    def __init__(self, circuit: Circuit, max_terms: int, and_g: np.ndarray,
-                 lin_g: np.ndarray) -> None:
-        """``and_g``, ``lin_g``: the AND and the linear gates, in any order."""
-        c = circuit
+    Returns (order, and_ptr, lin_ptr): the AND gates of depth d are
+    ``order[and_ptr[d] : and_ptr[d + 1]]``, the linear gates of layer d
+    ``order[lin_ptr[d] : lin_ptr[d + 1]]``.
+    """
+    D = c.depth() + 1
+    keys = c.and_depth.astype(np.uint16 if 2 * D <= 2**16 else np.int32)
+    keys[c.kind != AND] += D
+    order = np.argsort(keys, kind="stable").astype(np.int32)
+    ptr = np.zeros(2 * D + 1, np.int64)
+    np.cumsum(np.bincount(keys, minlength=2 * D), out=ptr[1:])
+    return order, ptr[: D + 1], ptr[D:]
+
+
+def _materialized(c: Circuit, chunk: int = 1 << 22) -> np.ndarray:
+    """Per wire: is it a linear wire read outside its own layer (by an AND gate, an output
+    or a linear gate of a later layer), so it needs a slot? Walks the gates in chunks so
+    no temporary is circuit-sized."""
+    F = c.first_gate_wire
+    is_and = c.kind == AND
+    layer = np.full(c.n_wires, -1, _narrow(c.depth() + 1))  # AND-depth of linear wires
+    layer[F:] = c.and_depth
+    layer[F:][is_and] = -1
+    mat = np.zeros(c.n_wires, bool)
+    for g0 in range(0, c.n_gates, chunk):
+        # an AND gate reads every linear wire from outside, a linear gate earlier layers'
+        reader = np.where(is_and[g0 : g0 + chunk], np.iinfo(layer.dtype).max,
+                          c.and_depth[g0 : g0 + chunk])
+        for ops in (c.a[g0 : g0 + chunk], c.b[g0 : g0 + chunk]):
+            mat[ops[layer[ops] < reader]] = True
+    mat[c.outputs] = True
+    mat &= layer >= 0
+    return mat
+
+
+class _Folder:
+    """Expands XOR logic layer by layer into leaf lists (see module docstring).
+
+    ``info[w]`` says how the current layer's gates read wire w: its term count in the low
+    byte and its sub-step need above. Wires of other layers read as leaves (1, 0) and cut
+    wires as leaves one sub-step later (1, need + 1), so one gather per operand decides
+    whether to expand it, how long it is and when it is ready.
+    """
+
+    def __init__(self, c: Circuit, max_terms: int) -> None:
         if not 2 <= max_terms <= 127:
             raise ValueError(f"max_terms must be in 2..127, got {max_terms}")
-        self.c, self.max_terms = c, max_terms
-        self.max_terms_shared = MAX_TERMS_SHARED
-        self.F = c.first_gate_wire
-        W = c.n_wires
-        # per wire, as narrow as the circuit allows (this is the scheduler's memory peak):
-        # AND-depth of linear wires (-1 for the others), expression start/length, sub-step
-        self.ldepth = np.full(W, -1, _narrow(c.depth() + 1))
-        self.ldepth[self.F :] = c.and_depth
-        self.ldepth[and_g + self.F] = -1
-        # materialize: read by an AND gate, an output, or a linear gate of a later layer
-        self.mat = np.zeros(W, bool)
-        self.mat[c.a[and_g]] = True
-        self.mat[c.b[and_g]] = True
-        self.mat[c.outputs] = True
-        lin_depth = c.and_depth[lin_g]
-        for ops in (c.a, c.b):
-            ops = ops[lin_g]
-            self.mat[ops[self.ldepth[ops] < lin_depth]] = True
-        del lin_depth
-        self.mat &= self.ldepth >= 0
-        self.cut = np.zeros(W, bool)
-        self.estart = np.zeros(W, np.int32)
-        self.elen = np.zeros(W, np.uint8)  # <= 2 * max_terms
-        self.need = np.zeros(W, _narrow(int(c.xor_depth.max(initial=0)) + 1))
+        self.c, self.F = c, c.first_gate_wire
+        self.max_terms, self.max_terms_shared = max_terms, MAX_TERMS_SHARED
+        self.mat = _materialized(c)
+        # need <= XOR-depth + 1 must fit the bits above the term count (<= 2 * max_terms)
+        info_type = np.uint16 if c.xor_depth.max(initial=0) < 2**8 - 1 else np.uint32
+        self.info = np.ones(c.n_wires, info_type)
+        self.elen = np.zeros(c.n_wires, np.uint8)
+        self.estart = np.zeros(c.n_wires, np.int32)
         self.buf = _Growable(np.int32)
 
-    def _piece(self, x: np.ndarray, d: int):
-        same = self.ldepth[x] == d
-        expand = same & ~self.cut[x]
-        length = np.where(expand, self.elen[x], 1).astype(np.int32)
-        need = np.where(expand, self.need[x], np.where(same, self.need[x] + 1, 0))
-        return expand, length, need
+    def add_gates(self, gates: np.ndarray) -> None:
+        """Expression of each gate (all of one layer and XOR-depth) from its operands.
 
-    def add_gates(self, gates: np.ndarray, d: int) -> None:
-        """Expression of each gate (all at the same AND- and XOR-depth) from its operands."""
-        c, F = self.c, self.F
-        xa, xb = c.a[gates], c.b[gates]
-        ea, la, na = self._piece(xa, d)
-        eb, lb, nb = self._piece(xb, d)
-        out = gates + F
-        glen = la + lb
-        start = self.buf.n + np.cumsum(glen, dtype=np.int32) - glen
-        leaves = np.stack([xa, xb], axis=1).ravel()
-        if not (ea.any() or eb.any()):
-            self.buf.extend(leaves)
+        The operands are pieces of length ``plen``: expanded wires copy their expression,
+        leaves themselves. Appending the leaves to the buffer for a moment lets one gather
+        copy every piece."""
+        c, buf = self.c, self.buf
+        leaves = np.stack([c.a[gates], c.b[gates]], axis=1).ravel()
+        info = self.info[leaves]
+        plen = (info & 0xFF).astype(np.int32)
+        ends = np.cumsum(plen, dtype=np.int32)
+        glen = plen[0::2] + plen[1::2]
+        need = np.maximum(info[0::2] >> 8, info[1::2] >> 8)
+        start = buf.n + ends[1::2] - glen
+        expand = plen > 1
+        if expand.any():
+            base = np.arange(buf.n, buf.n + leaves.size, dtype=np.int32)
+            buf.extend(leaves)
+            base[expand] = self.estart[leaves[expand]]
+            src = np.repeat(base - ends + plen, plen)
+            src += np.arange(src.size, dtype=np.int32)
+            vals = buf.view[src]
+            buf.n -= leaves.size
+            buf.extend(vals)
         else:
-            plen = np.stack([la, lb], axis=1).ravel()
-            pexp = np.stack([ea, eb], axis=1).ravel()
-            pstart = self.estart[leaves]
-            piece = np.repeat(np.arange(plen.size, dtype=np.int32), plen)
-            offs = np.arange(piece.size, dtype=np.int32) - np.repeat(np.cumsum(plen) - plen, plen)
-            vals = leaves[piece]
-            m = pexp[piece]
-            vals[m] = self.buf.view[pstart[piece[m]] + offs[m]]
-            self.buf.extend(vals)
+            buf.extend(leaves)
+        out = gates + self.F
         self.estart[out] = start
         self.elen[out] = glen
-        self.need[out] = np.maximum(na, nb)
-        big = (glen > self.max_terms) | (self.mat[out] & (glen > self.max_terms_shared))
-        self.cut[out[big]] = True
+        big = glen > self.max_terms
+        big |= self.mat[out] & (glen > self.max_terms_shared)
+        packed = glen.astype(info.dtype) | need << 8
+        packed[big] = 1 | (need[big] + 1) << 8
+        self.info[out] = packed
         self.mat[out[big]] = True
 
     def flush(self, wires: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Materialized wires of the finished layer as (outs, terms, term counts), one
-        entry per sub-step; resets the layer."""
-        wires = wires[self.mat[wires]]
+        """Materialized wires of the finished layer ``wires`` as (outs, terms, term counts),
+        one entry per sub-step; resets the layer."""
+        mat = wires[self.mat[wires]]
         out = []
-        if wires.size:
-            order, starts, ends = _groups(self.need[wires])
-            wires = wires[order]
-            lens = self.elen[wires]
+        if mat.size:
+            info = self.info[mat]
+            need = (info >> 8) - ((info & 0xFF) == 1).astype(info.dtype)  # cut: need + 1
+            order, starts, ends = _groups(need)
+            mat = mat[order]
+            lens = self.elen[mat]
             ends_t = np.cumsum(lens, dtype=np.int32)
-            idx = np.repeat(self.estart[wires] - ends_t + lens, lens)
+            idx = np.repeat(self.estart[mat] - ends_t + lens, lens)
             idx += np.arange(idx.size, dtype=np.int32)
             terms = self.buf.view[idx]
             ptr = np.concatenate([[0], ends_t])
             for s, e in zip(starts, ends):
-                out.append((wires[s:e], terms[ptr[s] : ptr[e]], lens[s:e]))
+                out.append((mat[s:e], terms[ptr[s] : ptr[e]], lens[s:e]))
+        self.info[wires] = 1
         self.buf.n = 0
         return out
 
 
 def _fold(c: Circuit, max_terms: int) -> _Plan:
-    F = c.first_gate_wire
-    is_and = c.kind == AND
-    and_g = np.flatnonzero(is_and).astype(np.int32)
-    a_order, a_starts, a_ends = _groups(c.and_depth[and_g])
-    and_g = and_g[a_order]
-    del a_order
-    and_depth_of_group = c.and_depth[and_g[a_starts]] if and_g.size else np.zeros(0, np.int32)
-
-    lin_g = np.flatnonzero(~is_and).astype(np.int32)
-    del is_and
-    xmax = int(c.xor_depth.max(initial=0)) + 1
-    key_type = np.int32 if (c.depth() + 1) * xmax < 2**31 else np.int64
-    keys = c.and_depth[lin_g].astype(key_type) * xmax + c.xor_depth[lin_g]
-    l_order, l_starts, l_ends = _groups(keys)
-    del keys
-    lin_g = lin_g[l_order]
-    del l_order
-    lin_layer = c.and_depth[lin_g[l_starts]] if lin_g.size else np.zeros(0, np.int32)
-
-    folder = _Folder(c, max_terms, and_g, lin_g)
+    F, D = c.first_gate_wire, c.depth() + 1
+    folder = _Folder(c, max_terms)
+    order, and_ptr, lin_ptr = _depth_order(c)
     kinds, los, his, term_los = [], [], [], []
-    and_rows = 0
-    lin_outs, lin_terms = _Growable(np.int32), _Growable(np.int32)
-    lin_lens = _Growable(np.uint8)
+    # the plan's largest arrays: little spare capacity, as they peak with the folder's
+    lin_outs, lin_terms = _Growable(np.int32, growth=1.25), _Growable(np.int32, growth=1.25)
+    lin_lens = _Growable(np.uint8, growth=1.25)
     lin_rows = 0
-    gi = 0  # next linear group
-    ai = 0  # next AND group
-    for d in range(c.depth() + 1):
-        first = gi
-        while gi < len(l_starts) and lin_layer[gi] == d:
-            folder.add_gates(lin_g[l_starts[gi] : l_ends[gi]], d)
-            gi += 1
-        if gi > first:
-            layer_wires = lin_g[l_starts[first] : l_ends[gi - 1]] + F
-            for outs, terms, lens in folder.flush(layer_wires):
-                kinds.append(0)
+    for d in range(D):
+        layer = order[lin_ptr[d] : lin_ptr[d + 1]]
+        if layer.size:
+            by_xor, starts, ends = _groups(c.xor_depth[layer])
+            layer = layer[by_xor]
+            for s, e in zip(starts.tolist(), ends.tolist()):
+                folder.add_gates(layer[s:e])
+            for outs, terms, lens in folder.flush(layer + F):
+                kinds.append(LINEAR_STEP)
                 term_los.append(lin_terms.n)
                 los.append(lin_rows)
                 lin_rows += len(outs)
@@ -321,21 +333,19 @@ def _fold(c: Circuit, max_terms: int) -> _Plan:
                 lin_outs.extend(outs)
                 lin_terms.extend(terms)
                 lin_lens.extend(lens)
-        if ai < len(a_starts) and and_depth_of_group[ai] == d + 1:
-            n = int(a_ends[ai] - a_starts[ai])
-            kinds.append(1)
+        if d + 1 < D and and_ptr[d + 2] > and_ptr[d + 1]:
+            kinds.append(AND_STEP)
             term_los.append(lin_terms.n)
-            los.append(and_rows)
-            and_rows += n
-            his.append(and_rows)
-            ai += 1
+            los.append(and_ptr[d + 1])
+            his.append(and_ptr[d + 2])
 
     del folder
+    lin_out, lin_lens, lin_terms = lin_outs.freeze(), lin_lens.freeze(), lin_terms.freeze()
+    and_g = order[: and_ptr[-1]]
     return _Plan(
         kind=np.array(kinds, np.uint8), lo=np.array(los, np.int64), hi=np.array(his, np.int64),
-        and_out=(and_g + F).astype(np.int32), and_a=c.a[and_g], and_b=c.b[and_g],
-        lin_out=lin_outs.freeze(), lin_lens=lin_lens.freeze(), lin_terms=lin_terms.freeze(),
-        term_lo=np.array(term_los, np.int64))
+        and_out=and_g + F, and_a=c.a[and_g], and_b=c.b[and_g], lin_out=lin_out,
+        lin_lens=lin_lens, lin_terms=lin_terms, term_lo=np.array(term_los, np.int64))
 
 
 def _order_rows(c: Circuit, plan: _Plan) -> np.ndarray:
@@ -489,8 +499,7 @@ def _allocate_slots(c: Circuit, plan: _Plan, death: np.ndarray,
     return slot_of, space.n_slots
 
 
-def _to_slots(slot_of: np.ndarray, arr: np.ndarray, chunk: int = 1 << 22) -> np.ndarray:
+def _to_slots(slot_of: np.ndarray, arr: np.ndarray, chunk: int = 1 << 22) -> None:
     """``slot_of[arr]`` written over arr, a chunk at a time (no full-size temporaries)."""
     for i in range(0, arr.size, chunk):
         arr[i : i + chunk] = slot_of[arr[i : i + chunk]]
-    return arr
