@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from snail_common.circuit import CircuitBuilder
@@ -75,13 +75,22 @@ def test_svd_solve_of_degenerate_systems_is_finite():
 
 @settings(max_examples=25, deadline=None)
 @given(seed=seeds, rows=st.integers(6, 16))
+@example(seed=25895223, rows=6)  # cond(J) = 5e5: a tight forward bound fails
 def test_pinv_step_is_the_least_squares_step(seed, rows):
     rng = np.random.default_rng(seed)
     jac = _f32(rng.normal(size=(rows, 6)) * 10 ** rng.uniform(-1, 2, 6)).astype(np.float64)
     res = _f32(rng.normal(size=rows)).astype(np.float64)
     step = pinv_step(F(MIRROR, _f32(jac)), F(MIRROR, _f32(res))).v.astype(np.float64)
     expect = -np.linalg.lstsq(jac, res, rcond=None)[0]
-    assert np.linalg.norm(step - expect) <= 1e-3 * np.linalg.norm(expect)
+    # float32 can promise no better than cond(J) * eps forward (CI drew a square J with
+    # cond 5e5: 2e-3 off, 0.06 of that bound); the normal equations hold to ~eps backward
+    # (over 600 seeds: forward <= 4 cond eps, backward <= 2.8e-7)
+    eps = 2.0**-24
+    assert np.linalg.norm(step - expect) <= 16 * np.linalg.cond(jac) * eps * np.linalg.norm(expect)
+    norm_j = np.linalg.norm(jac, 2)
+    backward = np.linalg.norm(jac.T @ (jac @ step + res)) / (
+        norm_j * (norm_j * np.linalg.norm(step) + np.linalg.norm(res)))
+    assert backward <= 2.0**-19
 
 
 def _scene(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
@@ -100,6 +109,7 @@ def _scene(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
 
 @settings(max_examples=20, deadline=None)
 @given(seed=seeds, n=st.integers(4, 9))
+@example(seed=16275, n=4)  # g cancels here: a componentwise bound failed
 def test_weighted_system_matches_the_normal_equations(seed, n):
     """J_w^T J_w and J_w^T r_w are H and g; the cost is the LDL^T program's, bit for bit."""
     v = _scene(np.random.default_rng(seed), n)
@@ -108,8 +118,12 @@ def test_weighted_system_matches_the_normal_equations(seed, n):
     assert jac.shape == (2 * n, 6) and res.shape == (2 * n,)
     hess, grad, cost64 = normal_equations64(*(v[k].astype(np.float64) for k in
                                               ("R", "t", "image", "world", "weights")))
-    assert np.allclose(jac.T @ jac, hess, rtol=1e-4, atol=1e-4 * np.abs(hess).max())
-    assert np.allclose(jac.T @ res, grad, rtol=1e-3, atol=1e-4 * np.abs(grad).max())
+    # J is in the 13-bit normal-equation format (loc/normal.py); normwise, over 1800
+    # random scenes: H off by <= 2^-19.3 |H|, g (which cancels near the optimum) by
+    # <= 2^-10.7 |J| |r|
+    assert np.linalg.norm(jac.T @ jac - hess) <= 2.0**-16 * np.linalg.norm(hess)
+    assert np.linalg.norm(jac.T @ res - grad) <= 2.0**-9 * np.linalg.norm(jac, 2) * \
+        np.linalg.norm(res)
     assert abs(cost - cost64) <= 1e-4 * cost64
     assert np.float32(cost) == normal_equations(*args)[2].v
 
