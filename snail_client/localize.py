@@ -32,6 +32,7 @@ from snail_common.loc.backends import (
     CircuitIteration,
     cleartext_runner,
     compiled,
+    interface,
     run_circuit,
     sil_values,
 )
@@ -124,8 +125,11 @@ def secure_runner(options: Options) -> Iterator[SecureRunner | None]:
         yield runner
 
 
-def _bit_runner(options: Options, runner: SecureRunner | None) -> BitRunner:
+def _bit_runner(spec: Spec, options: Options, runner: SecureRunner | None) -> BitRunner:
+    """How bits run: in the clear (this process compiles the circuit, now rather than in
+    the first timed call) or garbled (this process only ever needs the interface)."""
     if options.backend == "cleartext":
+        compiled(spec)
         return cleartext_runner
     if runner is None:
         raise ValueError("--backend garbled: needs a connected secure runner")
@@ -136,7 +140,7 @@ def _solve_sil(spec: Spec, options: Options, runner: SecureRunner | None, nrm: N
                pose0: Pose) -> _Outcome:
     """The client's LM/GN driver, one SIL run per step, padded to min_invocations."""
     backend: IterationBackend = iteration_float64 if options.backend == "float64" else \
-        CircuitIteration(spec, _bit_runner(options, runner))
+        CircuitIteration(spec, _bit_runner(spec, options, runner))
     first_invocation = runner.invocations if runner else 0
     result = run(options.algorithm, nrm, pose0, backend, options.max_iterations)
     if runner is not None:
@@ -150,14 +154,15 @@ def _solve_do(spec: Spec, options: Options, runner: SecureRunner | None, nrm: No
     """One run of the data-oblivious circuit (or its float64 reference) from pose0."""
     values = sil_values(spec, nrm, pose0, LAMBDA_START)
     if options.backend != "float64":
-        compiled(spec)  # build or load before the clock starts, as SIL does
+        bit_runner = _bit_runner(spec, options, runner)
+        interface(spec)  # build or load before the clock starts, as SIL does
     start = time.perf_counter()
     if options.backend == "float64":
         *_, before, final = do_reference(values, spec.solver, spec.iterations)
         out = {"R": final["R"], "t": final["t"], "cost": final["cost"],
                "previous_cost": before["cost"]}
     else:
-        out = run_circuit(spec, _bit_runner(options, runner), values)
+        out = run_circuit(spec, bit_runner, values)
     wall = time.perf_counter() - start
     cost, previous = float(out["cost"]), float(out["previous_cost"])
     converged = math.isfinite(cost) and previous - cost <= COST_TOL * previous
@@ -167,10 +172,10 @@ def _solve_do(spec: Spec, options: Options, runner: SecureRunner | None, nrm: No
 
 def _pad_invocations(runner: SecureRunner, spec: Spec, target: int) -> None:
     """Dummy runs on fresh random input bits until the session made ``target`` runs."""
-    circuit, _ = compiled(spec)
+    n_inputs = interface(spec).n_inputs
     while runner.invocations < target:
-        noise = np.frombuffer(os.urandom(circuit.n_inputs), np.uint8) & 1
-        runner.run(f"loc/{spec.circuit_id}", noise.astype(bool))
+        noise = np.frombuffer(os.urandom(n_inputs), np.uint8) & 1
+        runner.run(spec.registry_id, noise.astype(bool))
 
 
 def localize(problem: Problem, options: Options, runner: SecureRunner | None = None,
@@ -207,8 +212,7 @@ def localize(problem: Problem, options: Options, runner: SecureRunner | None = N
         "traffic": traffic,
     }
     if options.backend != "float64":
-        circuit, _ = compiled(spec)
-        counts = circuit.counts()
-        record["circuit"] = {"and": counts["and"], "xor": counts["xor"],
-                             "depth": circuit.depth(), "points": spec.points}
+        iface = interface(spec)
+        record["circuit"] = {"and": iface.counts["and"], "xor": iface.counts["xor"],
+                             "depth": iface.depth, "points": spec.points}
     return record

@@ -174,20 +174,19 @@ class AsyncSecureRunner:
         """One secure run of ``circuit_id`` on ``input_bits`` (bool, one per input wire)."""
         loop = asyncio.get_running_loop()
         try:
-            circuit, schedule = await loop.run_in_executor(None, registry.compiled,
-                                                           circuit_id)
+            iface = await loop.run_in_executor(None, registry.interface, circuit_id)
         except registry.UnknownCircuit as exc:
             raise ServiceError(str(exc)) from None
         bits = np.asarray(input_bits)
-        if bits.dtype != np.bool_ or bits.shape != (schedule.n_inputs,):
-            raise ValueError(f"input_bits must be a bool vector of {schedule.n_inputs} bits "
+        if bits.dtype != np.bool_ or bits.shape != (iface.n_inputs,):
+            raise ValueError(f"input_bits must be a bool vector of {iface.n_inputs} bits "
                              f"for {circuit_id}, got {bits.dtype} {bits.shape}")
         garbler, evaluator = await self.connect()
         t0 = time.perf_counter()
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
         labels = active_input_labels(seed, delta, bits)
-        n_out, chash = len(schedule.output_slots), circuit.content_hash()
+        n_out, chash = iface.n_outputs, iface.content_hash
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
 
         async def exchange() -> tuple[int, int, list]:

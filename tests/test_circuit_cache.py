@@ -1,4 +1,5 @@
-"""Circuit cache: round trip, content hash, rebuild on corruption; bench CLI contract."""
+"""Circuit cache: round trip, content hash, rebuild on corruption, the client's interface
+sidecar; bench CLI contract."""
 
 import json
 
@@ -7,8 +8,15 @@ from click.testing import CliRunner
 from shared_paths import BRISTOL
 
 from snail_common.bench.cli import main as bench
-from snail_common.circuit import CircuitBuilder, evaluate
-from snail_common.circuit.cache import cache_dir, cached, code_digest, load, source_digest
+from snail_common.circuit import CircuitBuilder, cache, encode_inputs, evaluate
+from snail_common.circuit.cache import (
+    cache_dir,
+    cached,
+    cached_interface,
+    code_digest,
+    load,
+    source_digest,
+)
 
 
 def _adder():
@@ -82,6 +90,41 @@ def test_changed_code_never_loads_a_stale_circuit(tmp_path, monkeypatch):
     cached("adder-v1", build, tmp_path)
     assert len(builds) == 2
     assert len(list(tmp_path.glob("adder-v1.*.npz"))) == 2
+
+
+def _never():
+    raise AssertionError("built a circuit")
+
+
+def test_interface_is_what_a_client_needs_of_the_circuit():
+    circuit = _adder()
+    iface = circuit.interface()
+    values = {"x": np.array([1, 2, 3], np.uint8), "y": np.array([9, 8, 7], np.uint8)}
+    assert np.array_equal(encode_inputs(iface, values), encode_inputs(circuit, values))
+    assert (iface.n_inputs, iface.n_outputs) == (circuit.n_inputs, circuit.n_outputs)
+    assert iface.content_hash == circuit.content_hash()
+    assert (iface.counts, iface.depth) == (circuit.counts(), circuit.depth())
+    assert type(iface).from_json(json.loads(json.dumps(iface.to_json()))) == iface
+
+
+def test_interface_comes_from_the_sidecar_or_an_unscheduled_build(tmp_path, monkeypatch):
+    """A compiled circuit leaves its interface next to it, so clients read a few hundred
+    bytes; on a cold cache they build the netlist but never schedule it."""
+    circuit, _ = cached("adder-v1", _adder, tmp_path)
+    assert cached_interface("adder-v1", _never, tmp_path) == circuit.interface()
+    monkeypatch.setattr(cache, "schedule_circuit", lambda _: _never())
+    assert cached_interface("adder-v2", _adder, tmp_path) == circuit.interface()
+    assert cached_interface("adder-v2", _never, tmp_path) == circuit.interface()
+    assert not list(tmp_path.glob("adder-v2.*.npz"))
+
+
+def test_corrupt_interface_sidecar_is_rebuilt(tmp_path):
+    iface = cached_interface("adder-v1", _adder, tmp_path)
+    path = tmp_path / f"adder-v1.{code_digest()}.interface.json"
+    for bad in (b"{not json", json.dumps({**iface.to_json(), "n_inputs": 5}).encode()):
+        path.write_bytes(bad)
+        assert cached_interface("adder-v1", _adder, tmp_path) == iface
+        assert json.loads(path.read_bytes()) == iface.to_json()
 
 
 def test_source_digest_follows_every_circuit_source_file(tmp_path):

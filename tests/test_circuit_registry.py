@@ -11,6 +11,7 @@ from snail_common.circuit import evaluate, registry
 def private_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("SNAIL_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(registry, "_lru", type(registry._lru)())
+    registry.interface.cache_clear()
 
 
 @pytest.mark.parametrize("bad", [
@@ -62,3 +63,17 @@ def test_lru_keeps_a_few_circuits():
         registry.compiled(f"ops/fadd-x{k}")
     assert registry.lookup("ops/fadd-x1") is None
     assert registry.lookup(f"ops/fadd-x{registry.LRU_SIZE + 1}") is not None
+
+
+def test_interface_needs_no_schedule(monkeypatch):
+    """Clients ask for the interface only: on a cold cache it is built, never scheduled."""
+    with monkeypatch.context() as patched:
+        patched.setattr("snail_common.circuit.cache.schedule_circuit", _refuse)
+        iface = registry.interface("ops/fmul-x3")
+    assert registry.lookup("ops/fmul-x3") is None
+    circuit, _ = registry.compiled("ops/fmul-x3")
+    assert iface == circuit.interface()
+
+
+def _refuse(*_):
+    raise AssertionError("scheduled a circuit for a client")

@@ -15,6 +15,7 @@ from shared_paths import EXAMPLES
 from snail_client.embedded import embedded_services
 from snail_client.localize import Options, localize
 from snail_client.secure import SecureRunner
+from snail_common.circuit import registry
 from snail_common.loc.problem import load_problem
 from snail_common.loc.reference import reprojection_rms
 
@@ -61,6 +62,20 @@ def test_do_mode_garbled_equals_cleartext_in_one_invocation(runner):
     assert garbled["traffic"]["garbler_to_evaluator"] >= 32 * garbled["circuit"]["and"]
     initial = reprojection_rms(problem, problem.initial_pose.rvec, problem.initial_pose.tvec)
     assert garbled["rms_px"] < 0.5 * initial
+
+
+def test_the_garbled_client_never_holds_a_netlist(runner, monkeypatch):
+    """A client (a phone, a drone) encodes, decodes and names circuits from their small
+    interface; compiling and scheduling is the servers' job."""
+    def refuse(*_):
+        raise AssertionError("the client compiled a circuit")
+
+    monkeypatch.setattr(registry, "compiled", refuse)
+    monkeypatch.setattr(registry, "lookup", lambda _: None)  # no netlist in memory to use
+    registry.interface.cache_clear()
+    problem = load_problem(EXAMPLES / "synthetic_n12.json")
+    result = localize(problem, Options(backend="garbled", min_invocations=0), runner)
+    assert result["converged"] and result["circuit"]["and"] > 0
 
 
 def test_do_mode_reaches_the_sil_pose():

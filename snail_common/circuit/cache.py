@@ -16,10 +16,11 @@ import re
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
-from .ir import Circuit, Group
+from .ir import Circuit, Group, Interface
 from .schedule import Schedule, schedule_circuit
 
 CACHE_ENV = "SNAIL_CACHE_DIR"
@@ -53,7 +54,7 @@ def cache_dir() -> Path:
 
 
 def save(path: Path, circuit: Circuit, schedule: Schedule) -> None:
-    """Write atomically (temp file + rename) so a concurrent reader never sees half a file."""
+    """Write the circuit and schedule, and the interface sidecar next to them."""
     meta = {"n_inputs": circuit.n_inputs, "hash": circuit.content_hash(),
             "inputs": [g.to_json() for g in circuit.inputs],
             "outputs": [g.to_json() for g in circuit.output_groups]}
@@ -61,11 +62,22 @@ def save(path: Path, circuit: Circuit, schedule: Schedule) -> None:
               "and_depth": circuit.and_depth, "xor_depth": circuit.xor_depth,
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8),
               **schedule.to_arrays()}
+    _write_atomic(path, lambda f: np.savez(f, **arrays))
+    save_interface(_interface_path(path), circuit.interface())
+
+
+def save_interface(path: Path, iface: Interface) -> None:
+    data = json.dumps(iface.to_json()).encode()
+    _write_atomic(path, lambda f: f.write(data))
+
+
+def _write_atomic(path: Path, write: Callable[[BinaryIO], object]) -> None:
+    """Temp file + rename, so a concurrent reader never sees half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            write(f)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -89,9 +101,7 @@ def cached(name: str, build: Callable[[], Circuit],
            directory: Path | None = None) -> tuple[Circuit, Schedule]:
     """The compiled circuit called ``name`` (which must encode every build parameter), built
     and scheduled on first use by this code (code_digest), loaded from disk afterwards."""
-    if not _NAME_OK.match(name):
-        raise ValueError(f"circuit cache name {name!r} must match {_NAME_OK.pattern}")
-    path = (directory or cache_dir()) / f"{name}.{code_digest()}.npz"
+    path = _path(name, directory)
     if path.exists():
         try:
             return load(path)
@@ -101,3 +111,29 @@ def cached(name: str, build: Callable[[], Circuit],
     schedule = schedule_circuit(circuit)
     save(path, circuit, schedule)
     return circuit, schedule
+
+
+def cached_interface(name: str, build: Callable[[], Circuit],
+                     directory: Path | None = None) -> Interface:
+    """The interface of the circuit called ``name``: read from its sidecar (written with the
+    compiled circuit, or by an earlier call), else built without scheduling. Clients use
+    this instead of ``cached``: they never load the netlist or the schedule."""
+    path = _interface_path(_path(name, directory))
+    if path.exists():
+        try:
+            return Interface.from_json(json.loads(path.read_bytes()))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            path.unlink(missing_ok=True)  # corrupt: rebuild
+    iface = build().interface()
+    save_interface(path, iface)
+    return iface
+
+
+def _path(name: str, directory: Path | None) -> Path:
+    if not _NAME_OK.match(name):
+        raise ValueError(f"circuit cache name {name!r} must match {_NAME_OK.pattern}")
+    return (directory or cache_dir()) / f"{name}.{code_digest()}.npz"
+
+
+def _interface_path(npz: Path) -> Path:
+    return npz.with_suffix(".interface.json")

@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .ir import FIRST_INPUT, Circuit
+from .ir import FIRST_INPUT, Circuit, Interface
 from .memo import per_object
 from .schedule import AndStep, LinearStep, Schedule
 from .values import from_bits, pack_lanes, to_bits, unpack_lanes
@@ -237,7 +237,7 @@ def evaluate_bits(schedule: Schedule, input_bits: np.ndarray) -> np.ndarray:
     return unpack_lanes(out, lanes).T
 
 
-def encode_inputs(circuit: Circuit, values: Mapping[str, object],
+def encode_inputs(circuit: Circuit | Interface, values: Mapping[str, object],
                   batch: int | None = None) -> np.ndarray:
     """Named input values -> bool (L, n_inputs); with ``batch`` every value has a leading
     batch axis of that length."""
@@ -256,7 +256,7 @@ def encode_inputs(circuit: Circuit, values: Mapping[str, object],
     return np.concatenate(parts, axis=1) if parts else np.zeros((lanes, 0), bool)
 
 
-def decode_outputs(circuit: Circuit, bits: np.ndarray,
+def decode_outputs(circuit: Circuit | Interface, bits: np.ndarray,
                    batch: bool = False) -> dict[str, np.ndarray]:
     """bool (L, n_outputs) -> named output values (leading batch axis if ``batch``)."""
     bits = np.atleast_2d(bits)

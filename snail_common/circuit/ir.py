@@ -102,6 +102,11 @@ class Circuit:
     def output_offsets(self) -> dict[str, int]:
         return _offsets(self.output_groups)
 
+    def interface(self) -> Interface:
+        """The part of the circuit a client needs (see ``Interface``)."""
+        return Interface(self.n_inputs, tuple(self.inputs), tuple(self.output_groups),
+                         self.content_hash(), self.counts(), self.depth())
+
     def content_hash(self) -> str:
         """SHA-256 over the netlist and its interface; identifies the circuit on the wire."""
         if self._hash is None:
@@ -132,6 +137,38 @@ class Circuit:
             raise ValueError("input groups do not cover the input bits exactly")
         if sum(gr.size for gr in self.output_groups) != self.n_outputs:
             raise ValueError("output groups do not cover the outputs exactly")
+
+
+@dataclass(frozen=True)
+class Interface:
+    """What a client needs of a circuit: the input and output layout to encode and decode,
+    the content hash to name it to the servers, and its size to report. A few hundred
+    bytes, where the netlist and schedule of a large circuit are gigabytes."""
+
+    n_inputs: int
+    inputs: tuple[Group, ...]
+    output_groups: tuple[Group, ...]
+    content_hash: str
+    counts: dict[str, int]
+    depth: int
+
+    @property
+    def n_outputs(self) -> int:
+        return sum(g.size for g in self.output_groups)
+
+    def to_json(self) -> dict:
+        return {"n_inputs": self.n_inputs, "inputs": [g.to_json() for g in self.inputs],
+                "outputs": [g.to_json() for g in self.output_groups],
+                "hash": self.content_hash, "counts": self.counts, "depth": self.depth}
+
+    @staticmethod
+    def from_json(d: dict) -> Interface:
+        iface = Interface(int(d["n_inputs"]), tuple(Group.from_json(g) for g in d["inputs"]),
+                          tuple(Group.from_json(g) for g in d["outputs"]), str(d["hash"]),
+                          {k: int(v) for k, v in d["counts"].items()}, int(d["depth"]))
+        if sum(g.size for g in iface.inputs) != iface.n_inputs:
+            raise ValueError("interface input groups do not cover the input bits exactly")
+        return iface
 
 
 def _offsets(groups: list[Group]) -> dict[str, int]:

@@ -7,11 +7,13 @@ An id is ``<family>/<rest>``:
 
 Ids are parsed strictly (bounded parameters) because servers compile whatever a client
 names. Compiled circuits come from the on-disk cache and stay in a small in-process LRU, so
-a daemon compiles each circuit once; concurrent requests for one id build it once.
+a daemon compiles each circuit once; concurrent requests for one id build it once. Clients
+ask for ``interface`` only and never hold a netlist or schedule.
 """
 
 from __future__ import annotations
 
+import functools
 import re
 import threading
 from collections import OrderedDict
@@ -25,7 +27,7 @@ from snail_common.arith.fsqrt import fsqrt
 
 from . import cache
 from .builder import CircuitBuilder
-from .ir import Circuit
+from .ir import Circuit, Interface
 from .schedule import Schedule
 
 MAX_OPS = 4096
@@ -82,6 +84,15 @@ def compiled(circuit_id: str) -> tuple[Circuit, Schedule]:
     with _lru_lock:
         _build_locks.pop(circuit_id, None)
     return hit
+
+
+@functools.lru_cache(maxsize=64)
+def interface(circuit_id: str) -> Interface:
+    """The client's view of ``circuit_id`` (layout, content hash, size): from a compiled
+    circuit already in memory, else from the cache's sidecar, else built unscheduled."""
+    name, build = _resolve(circuit_id)
+    hit = lookup(circuit_id)
+    return hit[0].interface() if hit is not None else cache.cached_interface(name, build)
 
 
 def lookup(circuit_id: str) -> tuple[Circuit, Schedule] | None:

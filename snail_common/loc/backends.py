@@ -8,28 +8,31 @@ encoding, the circuit and the decoding are shared, so the two agree bit for bit.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 
 import numpy as np
 
-from snail_common.circuit import cache
+from snail_common.circuit import registry
 from snail_common.circuit.cleartext import decode_outputs, encode_inputs, evaluate_bits
-from snail_common.circuit.ir import Circuit
+from snail_common.circuit.ir import Circuit, Interface
 from snail_common.circuit.schedule import Schedule
 
-from .circuits import Spec, build, run_mirror
+from .circuits import Spec, run_mirror
 from .types import IterationResult, Normalized, Pose
 
 # (circuit id, input bits (n_inputs,)) -> output bits (n_outputs,)
 BitRunner = Callable[[str, np.ndarray], np.ndarray]
 
 
-@functools.lru_cache(maxsize=4)
 def compiled(spec: Spec) -> tuple[Circuit, Schedule]:
-    """The circuit of ``spec`` and its schedule: kept in memory for the next iterations,
-    loaded from the on-disk cache when present, built otherwise."""
-    return cache.cached(spec.cache_name, lambda: build(spec))
+    """The circuit of ``spec`` and its schedule (for evaluating it in the clear), through
+    the registry's in-memory LRU and on-disk cache."""
+    return registry.compiled(spec.registry_id)
+
+
+def interface(spec: Spec) -> Interface:
+    """All the client needs to encode, decode and name the circuit of ``spec``."""
+    return registry.interface(spec.registry_id)
 
 
 def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> dict[str, np.ndarray]:
@@ -55,9 +58,9 @@ def cleartext_runner(circuit_id: str, bits: np.ndarray) -> np.ndarray:
 def run_circuit(spec: Spec, runner: BitRunner, values: dict[str, np.ndarray]
                 ) -> dict[str, np.ndarray]:
     """Encode ``values``, run the circuit of ``spec`` through ``runner``, decode the outputs."""
-    circuit, _ = compiled(spec)
-    bits = encode_inputs(circuit, values)[0]
-    return decode_outputs(circuit, runner(spec.circuit_id, bits))
+    iface = interface(spec)
+    bits = encode_inputs(iface, values)[0]
+    return decode_outputs(iface, runner(spec.circuit_id, bits))
 
 
 class CircuitIteration:
@@ -66,7 +69,7 @@ class CircuitIteration:
     def __init__(self, spec: Spec, runner: BitRunner = cleartext_runner) -> None:
         self.spec = spec
         self.runner = runner
-        compiled(spec)  # build or load now, not inside the first timed call
+        interface(spec)  # build or load now, not inside the first timed call
 
     def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
         out = run_circuit(self.spec, self.runner, sil_values(self.spec, problem, pose, lam))

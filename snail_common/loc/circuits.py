@@ -68,6 +68,11 @@ class Spec:
         return base if self.iterations == DO_ITERATIONS else f"{base}-i{self.iterations}"
 
     @property
+    def registry_id(self) -> str:
+        """The id servers know it by (``snail_common.circuit.registry``)."""
+        return f"loc/{self.circuit_id}"
+
+    @property
     def cache_name(self) -> str:
         return f"loc-{self.circuit_id}"
 
