@@ -323,7 +323,7 @@ def test_sigterm_stops_a_daemon_gracefully(services, cache, tmp_path):
 def test_a_session_whose_garbler_never_comes_times_out(services, cache, tmp_path):
     circuit, schedule = registry.compiled("ops/fadd-x1")
     daemon = start_daemon("evaluator", ["--tls-dir", str(services.tls_dir),
-                                        "--session-timeout", "0.5", "--max-sessions", "1"],
+                                        "--session-timeout", "2", "--max-sessions", "1"],
                           tmp_path / "evaluator.log", env={"SNAIL_CACHE_DIR": str(cache)})
     try:
         with contextlib.closing(raw(daemon.address, services.tls_dir)) as sock:
@@ -340,7 +340,7 @@ def test_a_session_whose_garbler_never_comes_times_out(services, cache, tmp_path
             t0 = time.monotonic()
             expired = read_msg(sock)
             assert (expired["code"], expired["sid"]) == (errors.TIMEOUT, SID)
-            assert "garbler" in expired["message"] and time.monotonic() - t0 < 5
+            assert "garbler" in expired["message"] and time.monotonic() - t0 < 10
             sock.sendall(encode_bytes(messages.make("health_request")))
             sessions = read_msg(sock)["sessions"]
             assert (sessions["active"], sessions["failed"]) == (0, 1)
