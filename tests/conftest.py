@@ -1,4 +1,6 @@
+import atexit
 import os
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -8,8 +10,11 @@ from hypothesis import settings
 sys.path.insert(0, str(Path(__file__).parent))
 
 # Compiled circuits go to a throwaway cache (shared by daemons the tests start), never to
-# the user's cache, unless the caller chose one.
-os.environ.setdefault("SNAIL_CACHE_DIR", tempfile.mkdtemp(prefix="snail-test-cache-"))
+# the user's cache, unless the caller chose one. It holds gigabytes once the large circuits
+# are compiled, so it goes when the run ends.
+if not os.environ.get("SNAIL_CACHE_DIR"):
+    os.environ["SNAIL_CACHE_DIR"] = tempfile.mkdtemp(prefix="snail-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["SNAIL_CACHE_DIR"], ignore_errors=True)
 
 # CI decides whether work lands, so there the randomized tests draw the same examples on
 # every run (a rare unlucky draw must not block a merge); developers' runs stay random and

@@ -5,6 +5,7 @@ traffic is measured, and bad input exits 2 naming the field."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -133,3 +134,14 @@ def test_cli_half_remote_addresses_is_a_usage_error():
     out = _cli("localize", "--input", str(EXAMPLES / "synthetic_n6.json"),
                "--garbler", "127.0.0.1:1")
     assert out.returncode == 2 and "--tls-dir" in out.stderr
+
+
+def test_cli_summary_reports_the_median_timed_call():
+    out = _cli("localize", "--input", str(EXAMPLES / "synthetic_n6.json"),
+               "--backend", "float64")
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.strip().splitlines()
+    assert len(lines) == 3 and "converged after" in lines[1]
+    calls, median, first = re.search(
+        r"; (\d+) timed calls, median ([\d.]+) s, first ([\d.]+) s", lines[2]).groups()
+    assert int(calls) >= 2 and float(median) >= 0 and float(first) >= 0
