@@ -139,5 +139,56 @@ def engine(as_json: bool) -> None:
     _emit(engine_report(), as_json)
 
 
+@main.command()
+@click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm", show_default=True,
+              help="Levenberg-Marquardt (damped) or Gauss-Newton.")
+@click.option("--mode", type=click.Choice(["sil", "do"]), default="sil", show_default=True,
+              help="sil: one iteration per circuit; do: the data-oblivious 20-iteration baseline.")
+@click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt", show_default=True,
+              help="Linear solver for the 6x6 step.")
+@click.option("--points", type=click.IntRange(4, 4096), multiple=True, metavar="N",
+              help="Circuit size; repeat for several (default: 6, 12, 64 and 256).")
+@click.option("--repeat", type=click.IntRange(1, 1000), default=5, show_default=True,
+              help="Warm runs per circuit, after one first run that may load the circuit.")
+@click.option("--garbler", metavar="HOST:PORT",
+              help="A running garbler (with --evaluator and --tls-dir); default: start both "
+                   "daemons on loopback with throwaway certificates.")
+@click.option("--evaluator", metavar="HOST:PORT", help="A running evaluator.")
+@click.option("--tls-dir", type=click.Path(exists=True, file_okay=False),
+              help="Directory from `snail-client certs` with the client's certificate.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], repeat: int,
+            garbler: str | None, evaluator: str | None, tls_dir: str | None,
+            as_json: bool) -> None:
+    """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
+    per link, and the servers' peak memory. Circuits are compiled on first use."""
+    from snail_common.loc.circuits import Spec
+
+    if (garbler is None) != (evaluator is None) or (garbler is not None) != bool(tls_dir):
+        raise click.UsageError("--garbler, --evaluator and --tls-dir go together (or none, "
+                               "for daemons on loopback)")
+    try:
+        specs = [Spec(algorithm, mode, solver, n) for n in points or (6, 12, 64, 256)]
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+    from snail_client.bench import service_report
+    from snail_client.secure import ServiceError
+
+    try:
+        report = service_report(specs, repeat, garbler, evaluator, tls_dir)
+    except ServiceError as e:
+        click.echo(f"snail-bench: {e}", err=True)
+        sys.exit(1)
+    if as_json:
+        click.echo(json.dumps(report))
+        return
+    for name, row in report["service"].items():
+        mb = row["traffic"]["garbler_to_evaluator"] / 1e6
+        rss = "  ".join(f"{role} {v} MB" for role, v in row.get("peak_rss_mb", {}).items())
+        click.echo(f"{name:>20}: median {row['median_s']:.3f} s (min {row['min_s']:.3f}, "
+                   f"max {row['max_s']:.3f}, first {row['first_s']:.3f})  {mb:.1f} MB "
+                   f"garbler->evaluator  {row['and']:,} AND  peak RSS {rss or 'n/a'}")
+
+
 if __name__ == "__main__":
     sys.exit(main())
