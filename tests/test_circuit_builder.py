@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from snail_common.circuit import ONE, ZERO, CircuitBuilder, evaluate
+from snail_common.circuit.builder import CircuitTooLarge, and_gate_limit
 from snail_common.circuit.values import from_bits, pack_lanes, to_bits, unpack_lanes
 
 
@@ -86,3 +87,18 @@ def test_evaluate_names_the_bad_input():
         evaluate(c, {"x": np.zeros(3, np.uint8)})
     with pytest.raises(ValueError, match="missing"):
         evaluate(c, {})
+
+
+def test_and_gate_limit_stops_a_build_that_crosses_it():
+    with and_gate_limit(40):
+        b = CircuitBuilder()
+        x, y = b.input("x", (), 32, "int"), b.input("y", (), 32, "int")
+        b.and_(x, y)  # 32: within the limit
+        b.and_(x, ONE)  # folded: no gate, nothing counted
+        with pytest.raises(CircuitTooLarge, match="more than 40 AND gates"):
+            b.and_(x[:9], y[:9])
+        assert b.n_gates == 32  # the batch that crossed the limit was not emitted
+    unlimited = CircuitBuilder()  # the limit ends with its block
+    x = unlimited.input("x", (), 64, "int")
+    unlimited.and_(x, x[::-1])
+    assert unlimited.n_gates == 64

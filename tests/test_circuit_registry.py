@@ -77,3 +77,22 @@ def test_interface_needs_no_schedule(monkeypatch):
 
 def _refuse(*_):
     raise AssertionError("scheduled a circuit for a client")
+
+
+def test_a_circuit_over_the_and_limit_is_refused_and_not_cached(tmp_path, monkeypatch):
+    # fmul is 906 AND gates per lane: x1 fits a limit of 1000, x4 does not
+    assert registry.compiled("ops/fmul-x1", max_and=1000)[1].n_and == 906
+    with pytest.raises(registry.CircuitTooLarge, match=r"ops/fmul-x4: .*more than 1,000"):
+        registry.compiled("ops/fmul-x4", max_and=1000)
+    assert not list(tmp_path.glob("ops-fmul-x4.*"))
+    assert registry.lookup("ops/fmul-x4") is None
+
+
+def test_a_cached_circuit_over_the_limit_is_refused(monkeypatch):
+    registry.compiled("ops/fmul-x4")  # compiled without a limit: in memory and on disk
+    with pytest.raises(registry.CircuitTooLarge, match="has 3,624 AND gates"):
+        registry.compiled("ops/fmul-x4", max_and=1000)
+    monkeypatch.setattr(registry, "_lru", type(registry._lru)())
+    with pytest.raises(registry.CircuitTooLarge, match="has 3,624 AND gates"):
+        registry.compiled("ops/fmul-x4", max_and=1000)  # loaded from disk
+    assert registry.lookup("ops/fmul-x4") is None

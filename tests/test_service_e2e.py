@@ -346,3 +346,19 @@ def test_a_session_whose_garbler_never_comes_times_out(services, cache, tmp_path
             assert (sessions["active"], sessions["failed"]) == (0, 1)
     finally:
         daemon.stop()
+
+
+def test_circuits_over_the_daemons_and_limit_are_refused(cache):
+    with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)},
+                           extra_args=("--max-and-gates", "100000")) as small, \
+            SecureRunner(small.garbler_addr, small.evaluator_addr, small.tls_dir,
+                         timeout=60) as limited:
+        n_inputs = registry.interface("loc/lm-sil-ldlt-n4").n_inputs  # 414,471 AND gates
+        t0 = time.monotonic()
+        with pytest.raises(ServiceError, match=r"too_large.*more than 100,000 AND gates"
+                                               r" \(this .*--max-and-gates\)"):
+            limited.run("loc/lm-sil-ldlt-n4", np.zeros(n_inputs, bool))
+        assert time.monotonic() - t0 < 30
+        assert_still_serves(limited)
+        for role in ("garbler", "evaluator"):
+            assert limited.health(role)["sessions"]["active"] == 0

@@ -9,13 +9,35 @@ XOR-depth are computed here, batch by batch, so scheduling never walks gates one
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Iterator, Sequence
+from contextvars import ContextVar
 
 import numpy as np
 
 from .ir import AND, FIRST_INPUT, NOT, ONE, XOR, ZERO, Circuit, Group
 
 WireArray = np.ndarray
+
+# AND gates a builder may emit (None: no limit); set per thread by ``and_gate_limit``
+_and_limit: ContextVar[int | None] = ContextVar("and_limit", default=None)
+
+
+class CircuitTooLarge(ValueError):
+    """A circuit being built crossed the AND-gate limit in force."""
+
+
+@contextlib.contextmanager
+def and_gate_limit(limit: int | None) -> Iterator[None]:
+    """Builders created inside stop with CircuitTooLarge once they emit more than
+    ``limit`` AND gates: a server bounds the time and memory one request may make it
+    spend on compiling, without knowing the circuit's size in advance."""
+    token = _and_limit.set(limit)
+    try:
+        yield
+    finally:
+        _and_limit.reset(token)
+
 
 
 class _Growable:
@@ -67,6 +89,8 @@ class CircuitBuilder:
         self._depth.extend(np.zeros(FIRST_INPUT, np.int32))
         self._xdepth.extend(np.zeros(FIRST_INPUT, np.int32))
         self._outputs: list[tuple[Group, np.ndarray]] = []
+        self._n_and = 0
+        self._max_and = _and_limit.get()
 
     # ---- interface -------------------------------------------------------------------
     def input(self, name: str, shape: Sequence[int] | int = (), bits: int = 1,
@@ -177,6 +201,10 @@ class CircuitBuilder:
         xdepth = self._xdepth.view
         dx, dy = depth[xf], depth[yf]
         if kind == AND:
+            self._n_and += n
+            if self._max_and is not None and self._n_and > self._max_and:
+                raise CircuitTooLarge(f"the circuit needs more than {self._max_and:,} "
+                                      "AND gates")
             d = np.maximum(dx, dy) + 1
             xd = np.zeros(n, np.int32)
         else:

@@ -26,7 +26,7 @@ from snail_common.arith.fmul import fmul
 from snail_common.arith.fsqrt import fsqrt
 
 from . import cache
-from .builder import CircuitBuilder
+from .builder import CircuitBuilder, CircuitTooLarge, and_gate_limit
 from .ir import Circuit, Interface
 from .schedule import Schedule
 
@@ -63,26 +63,44 @@ _lru_lock = threading.Lock()
 _build_locks: dict[str, threading.Lock] = {}
 
 
-def compiled(circuit_id: str) -> tuple[Circuit, Schedule]:
-    """The circuit and schedule named ``circuit_id`` (thread-safe, built at most once)."""
+def compiled(circuit_id: str, max_and: int | None = None) -> tuple[Circuit, Schedule]:
+    """The circuit and schedule named ``circuit_id`` (thread-safe, built at most once).
+    With ``max_and``, a circuit of more AND gates raises CircuitTooLarge: a build stops
+    as soon as it crosses the limit, and nothing is cached."""
     name, build = _resolve(circuit_id)
     with _lru_lock:
         hit = _lru.get(circuit_id)
         if hit is not None:
             _lru.move_to_end(circuit_id)
-            return hit
+            return _within(circuit_id, hit, max_and)
         lock = _build_locks.setdefault(circuit_id, threading.Lock())
     with lock:  # one builder per id; others wait for it and then hit the LRU
         with _lru_lock:
             hit = _lru.get(circuit_id)
         if hit is None:
-            hit = cache.cached(name, build)
+            try:
+                with and_gate_limit(max_and):
+                    built = cache.cached(name, build)
+            except CircuitTooLarge as exc:
+                raise CircuitTooLarge(f"{circuit_id}: {exc}") from None
+            hit = _within(circuit_id, built, max_and)
             with _lru_lock:
                 _lru[circuit_id] = hit
                 while len(_lru) > LRU_SIZE:
                     _lru.popitem(last=False)
     with _lru_lock:
         _build_locks.pop(circuit_id, None)
+    return _within(circuit_id, hit, max_and)
+
+
+def _within(circuit_id: str, hit: tuple[Circuit, Schedule],
+            max_and: int | None) -> tuple[Circuit, Schedule]:
+    """``hit``, unless it has more than ``max_and`` AND gates (one compiled elsewhere
+    with a higher limit, found in the cache)."""
+    n_and = hit[1].n_and
+    if max_and is not None and n_and > max_and:
+        raise CircuitTooLarge(f"{circuit_id} has {n_and:,} AND gates, more than "
+                              f"{max_and:,}")
     return hit
 
 

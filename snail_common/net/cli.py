@@ -40,6 +40,11 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Seconds a session may wait for its peer's next message."),
         click.option("--workers", type=click.IntRange(1, 256), default=defaults.workers,
                      show_default=True, help="Threads for garbling/evaluation."),
+        click.option("--max-and-gates", type=click.IntRange(1, 10**10),
+                     default=defaults.max_and_gates, show_default=True,
+                     help="Largest circuit (in AND gates) this daemon compiles or loads; "
+                          "bigger ones are refused as too_large. Memory peaks at about "
+                          "200 bytes per AND gate of the largest circuit."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
                      show_default=True,
                      help="Seconds SIGTERM waits for running sessions to finish."),
@@ -51,4 +56,4 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
 def options_from(kwargs: dict[str, Any]) -> Options:
     return Options(max_sessions=kwargs["max_sessions"],
                    session_timeout=kwargs["session_timeout"], grace=kwargs["grace"],
-                   workers=kwargs["workers"])
+                   workers=kwargs["workers"], max_and_gates=kwargs["max_and_gates"])

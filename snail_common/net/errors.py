@@ -12,6 +12,7 @@ UNKNOWN_FIELD = "unknown_field"
 UNEXPECTED = "unexpected"  # a valid message this peer may not send here or now
 FORBIDDEN = "forbidden"  # the peer certificate's role may not do this
 UNKNOWN_CIRCUIT = "unknown_circuit"
+TOO_LARGE = "too_large"  # the circuit has more AND gates than this server compiles
 CIRCUIT_MISMATCH = "circuit_mismatch"  # content hash differs between peers
 BAD_REQUEST = "bad_request"  # well-formed but invalid values (delta parity, label count ...)
 DUPLICATE_SESSION = "duplicate_session"

@@ -33,6 +33,7 @@ from .errors import (
     BUSY,
     CIRCUIT_MISMATCH,
     INTERNAL,
+    TOO_LARGE,
     UNKNOWN_CIRCUIT,
     ConnectionClosed,
     ProtocolError,
@@ -56,6 +57,9 @@ class Options:
     handshake_timeout: float = 10.0
     grace: float = 10.0  # how long shutdown waits for running sessions
     workers: int = max(2, os.cpu_count() or 2)
+    # largest circuit compiled or loaded: a daemon's memory peaks at ~200 bytes per AND
+    # gate of it (n=256 SIL-LM: 15.2 M AND, 3.0 GB; 20-iteration DO at n=6: 12.6 M, 2.2 GB)
+    max_and_gates: int = 40_000_000
 
 
 class Daemon:
@@ -110,10 +114,14 @@ class Daemon:
             if ready is not None and self._planned.get(circuit_id) == id(ready[1]):
                 circuit, schedule = ready
             else:
-                circuit, schedule = await self.work(_prepare, circuit_id)
+                circuit, schedule = await self.work(_prepare, circuit_id,
+                                                    self.options.max_and_gates)
                 self._planned[circuit_id] = id(schedule)
         except registry.UnknownCircuit as exc:
             raise ProtocolError(UNKNOWN_CIRCUIT, str(exc)) from None
+        except registry.CircuitTooLarge as exc:
+            raise ProtocolError(TOO_LARGE, f"{exc} (this {self.role}'s --max-and-gates)") \
+                from None
         if circuit.content_hash() != content_hash:
             raise ProtocolError(CIRCUIT_MISMATCH, f"circuit {circuit_id} has content hash "
                                                   f"{circuit.content_hash()[:16]}... here, "
@@ -181,6 +189,7 @@ class Daemon:
             ssl_handshake_timeout=self.options.handshake_timeout)
         announce(self.log, "listening", host=host, port=server.sockets[0].getsockname()[1],
                  pid=os.getpid(), max_sessions=self.options.max_sessions,
+                 max_and_gates=self.options.max_and_gates,
                  workers=self.options.workers)
         await self.stopping.wait()
         event(self.log, "shutting_down", active=self.counters["active"])
@@ -231,9 +240,9 @@ def _audit_handshakes(ctx: ssl.SSLContext, refused: Callable[[ssl.SSLError], Non
     ctx.sslobject_class = AuditedSSLObject
 
 
-def _prepare(circuit_id: str) -> tuple[Circuit, Schedule]:
+def _prepare(circuit_id: str, max_and: int) -> tuple[Circuit, Schedule]:
     """Compile (or load) the circuit and build its engine plan once."""
-    circuit, schedule = registry.compiled(circuit_id)
+    circuit, schedule = registry.compiled(circuit_id, max_and)
     plan_for(schedule)
     return circuit, schedule
 
