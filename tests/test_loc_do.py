@@ -12,6 +12,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from snail_common.circuit import CircuitBuilder
+from snail_common.circuit.builder import CircuitTooLarge, and_gate_limit
 from snail_common.circuit.cleartext import evaluate
 from snail_common.loc.backends import sil_values
 from snail_common.loc.circuits import Spec, run_mirror
@@ -125,8 +126,7 @@ def test_do_reaches_the_pose_of_the_lm_driver(seed, solver):
     assert abs(float(out["cost"].v) - lm.cost) <= 1e-3 * lm.cost
 
 
-def test_do_circuit_equals_mirror_bit_for_bit():
-    n, iterations = 4, 2
+def _do_circuit(n: int, iterations: int) -> CircuitBuilder:
     b = CircuitBuilder()
     be = CircuitBackend(b)
     shapes = input_shapes("lm", n)
@@ -134,7 +134,13 @@ def test_do_circuit_equals_mirror_bit_for_bit():
     outputs = do_program(inputs, "ldlt", iterations)
     for k in OUTPUT_SHAPES:
         b.output(k, outputs[k].v, dtype="float32")
-    circuit = b.build()
+    return b
+
+
+def test_do_circuit_equals_mirror_bit_for_bit():
+    n, iterations = 4, 2
+    shapes = input_shapes("lm", n)
+    circuit = _do_circuit(n, iterations).build()
     rng = np.random.default_rng(3)
     cases = []
     for lam in (1e-3, 1e7):  # mostly accepted / a rejection clamped at LAMBDA_MAX
@@ -147,6 +153,15 @@ def test_do_circuit_equals_mirror_bit_for_bit():
         for k in OUTPUT_SHAPES:
             assert np.array_equal(_f32(out[k][i]).view(np.uint32),
                                   _f32(mirror[k].v).view(np.uint32)), (i, k)
+
+
+def test_an_and_limit_refuses_a_do_circuit_after_its_first_iteration():
+    one, three = _do_circuit(4, 1).n_and, _do_circuit(4, 3).n_and
+    # the first iteration fits; the projection from it is the three-iteration circuit's
+    # exact size, since every iteration is the same gates on other wires
+    with and_gate_limit(one), pytest.raises(
+            CircuitTooLarge, match=rf"3 LM iterations of [0-9,]+ AND gates: about {three:,} "):
+        _do_circuit(4, 3)
 
 
 def test_bad_arguments_are_named():

@@ -135,6 +135,18 @@ class CircuitBuilder:
     def n_gates(self) -> int:
         return self._kind.n
 
+    @property
+    def n_and(self) -> int:
+        return self._n_and
+
+    def expect_and(self, total: int, why: str) -> None:
+        """Stop now with CircuitTooLarge if the finished circuit will have ``total`` AND
+        gates, over the limit in force: a program that repeats a block can refuse after
+        building one repetition rather than after as many as fit under the limit."""
+        if self._max_and is not None and total > self._max_and:
+            raise CircuitTooLarge(f"{why}: about {total:,} AND gates, more than "
+                                  f"{self._max_and:,}")
+
     # ---- gates -----------------------------------------------------------------------
     @staticmethod
     def const(bit: int | np.ndarray) -> WireArray:

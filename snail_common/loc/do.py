@@ -67,9 +67,15 @@ def do_states(inputs: dict[str, F], solver: str, iterations: int = ITERATIONS,
     state = State(inputs["R"], inputs["t"], inputs["lam"],
                   *normal_equations(inputs["R"], inputs["t"], *data))
     states = [state]
-    for _ in range(iterations):
+    be = state.cost.be
+    for k in range(iterations):
+        before = be.and_gates()
         state = _iterate(state, data, solve)
         states.append(state)
+        if k == 0:  # every iteration is the same gates on other wires: refuse early
+            per_iteration = be.and_gates() - before
+            be.expect_and(be.and_gates() + (iterations - 1) * per_iteration,
+                          f"{iterations} LM iterations of {per_iteration:,} AND gates")
     return states
 
 

@@ -50,6 +50,13 @@ class MirrorBackend(_Precision):
         """Same values either way: only the circuit's shape changes."""
         yield
 
+    def and_gates(self) -> int:
+        """Numbers cost no gates."""
+        return 0
+
+    def expect_and(self, total: int, why: str) -> None:
+        """No gates, no limit."""
+
     def shape(self, v: np.ndarray) -> tuple[int, ...]:
         return np.shape(v)
 
@@ -114,6 +121,14 @@ class CircuitBackend(_Precision):
 
     def shape(self, v: np.ndarray) -> tuple[int, ...]:
         return np.shape(v)[:-1]
+
+    def and_gates(self) -> int:
+        """AND gates emitted so far."""
+        return self.b.n_and
+
+    def expect_and(self, total: int, why: str) -> None:
+        """Refuse now if the program will emit ``total`` AND gates over the builder's limit."""
+        self.b.expect_and(total, why)
 
     def const(self, value: float, shape: tuple[int, ...]) -> np.ndarray:
         return fconst(value, shape)
