@@ -9,10 +9,8 @@ With the embedded daemons the servers' peak RSS is read from /proc (Linux).
 
 from __future__ import annotations
 
-import contextlib
 import secrets
 import statistics
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +18,7 @@ import numpy as np
 from snail_common.circuit import registry
 from snail_common.loc.circuits import Spec
 
-from .embedded import Services, embedded_services
+from .embedded import connected
 from .secure import Invocation, SecureRunner
 
 
@@ -31,7 +29,7 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
     run, and (embedded daemons only) each server's peak RSS so far: a high-water mark
     over the daemon's life, so with several circuits it covers the largest run yet."""
     report: dict[str, dict] = {}
-    with _servers(garbler, evaluator, tls_dir) as (runner, services):
+    with connected(garbler, evaluator, tls_dir) as (runner, services):
         for spec in specs:
             report[spec.circuit_id] = _measure(runner, spec, repeat)
             if services is not None:
@@ -39,18 +37,6 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
                     daemon.role: _peak_rss_mb(daemon.process.pid)
                     for daemon in (services.garbler, services.evaluator)}
     return {"service": report}
-
-
-@contextlib.contextmanager
-def _servers(garbler: str | None, evaluator: str | None,
-             tls_dir: str | None) -> Iterator[tuple[SecureRunner, Services | None]]:
-    if garbler:
-        with SecureRunner(garbler, evaluator, tls_dir) as runner:
-            yield runner, None
-        return
-    with embedded_services() as services, SecureRunner(
-            services.garbler_addr, services.evaluator_addr, services.tls_dir) as runner:
-        yield runner, services
 
 
 def _measure(runner: SecureRunner, spec: Spec, repeat: int) -> dict:

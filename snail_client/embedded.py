@@ -24,7 +24,7 @@ from pathlib import Path
 from snail_common.net.conn import format_addr
 from snail_common.net.tls import make_certs
 
-from .secure import ServiceError
+from .secure import SecureRunner, ServiceError
 
 STARTUP_TIMEOUT = 60.0
 STOP_TIMEOUT = 10.0
@@ -124,3 +124,27 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
         finally:
             for daemon in reversed(started):
                 daemon.stop()
+
+
+def check_addresses(garbler: str | None, evaluator: str | None,
+                    tls_dir: str | None) -> None:
+    """Remote servers need all three; none of them means embedded ones."""
+    remote = (garbler, evaluator, tls_dir)
+    if any(remote) and not all(remote):
+        raise ValueError("--garbler, --evaluator and --tls-dir go together (or none, for "
+                         "daemons on loopback)")
+
+
+@contextlib.contextmanager
+def connected(garbler: str | None = None, evaluator: str | None = None,
+              tls_dir: str | None = None) -> Iterator[tuple[SecureRunner, Services | None]]:
+    """A runner for the servers at these addresses, or for embedded ones started for the
+    block (yielded too, so a caller can watch them; None for remote servers)."""
+    check_addresses(garbler, evaluator, tls_dir)
+    if garbler:
+        with SecureRunner(garbler, evaluator, tls_dir) as runner:
+            yield runner, None
+        return
+    with embedded_services() as services, SecureRunner(
+            services.garbler_addr, services.evaluator_addr, services.tls_dir) as runner:
+        yield runner, services

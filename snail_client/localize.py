@@ -45,7 +45,7 @@ from snail_common.loc.problem import PoseVectors, Problem, check_in_front
 from snail_common.loc.reference import iteration_float64, reprojection_rms
 from snail_common.loc.types import IterationBackend, Normalized, Pose
 
-from .embedded import embedded_services
+from .embedded import check_addresses, connected
 from .secure import LINKS, SecureRunner
 
 BACKENDS = ("garbled", "cleartext", "float64")
@@ -82,9 +82,7 @@ class Options:
                              "(use --algorithm lm)")
         if not 1 <= self.do_iterations <= DO_MAX_ITERATIONS:
             raise ValueError(f"--do-iterations: must be in 1..{DO_MAX_ITERATIONS}")
-        remote = (self.garbler, self.evaluator, self.tls_dir)
-        if any(remote) and not all(remote):
-            raise ValueError("--garbler, --evaluator and --tls-dir go together")
+        check_addresses(self.garbler, self.evaluator, self.tls_dir)
 
     def circuit_points(self, n: int) -> int:
         if self.pad_points <= 1:
@@ -116,12 +114,7 @@ def secure_runner(options: Options) -> Iterator[SecureRunner | None]:
     if options.backend != "garbled":
         yield None
         return
-    if options.garbler:
-        with SecureRunner(options.garbler, options.evaluator, options.tls_dir) as runner:
-            yield runner
-        return
-    with embedded_services() as services, SecureRunner(
-            services.garbler_addr, services.evaluator_addr, services.tls_dir) as runner:
+    with connected(options.garbler, options.evaluator, options.tls_dir) as (runner, _):
         yield runner
 
 

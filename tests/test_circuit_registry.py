@@ -86,6 +86,7 @@ def test_a_circuit_over_the_and_limit_is_refused_and_not_cached(tmp_path, monkey
         registry.compiled("ops/fmul-x4", max_and=1000)
     assert not list(tmp_path.glob("ops-fmul-x4.*"))
     assert registry.lookup("ops/fmul-x4") is None
+    assert "ops/fmul-x4" not in registry._build_locks  # a refusal leaves no lock behind
 
 
 def test_a_cached_circuit_over_the_limit_is_refused(monkeypatch):

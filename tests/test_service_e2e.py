@@ -11,6 +11,8 @@ import socket
 import ssl
 import struct
 import time
+from collections.abc import Callable
+from typing import TypeVar
 
 import msgpack
 import numpy as np
@@ -26,6 +28,7 @@ from snail_common.net.conn import new_event_loop, parse_addr
 from snail_common.net.frames import PROTOCOL_VERSION, decode, encode_bytes
 
 SID = bytes(range(16))
+T = TypeVar("T")
 
 
 @pytest.fixture(scope="module")
@@ -57,6 +60,15 @@ def cleartext(circuit_id: str, bits: np.ndarray) -> np.ndarray:
 def float_bits(circuit_id: str, values: dict) -> np.ndarray:
     circuit, _ = registry.compiled(circuit_id)
     return encode_inputs(circuit, values)[0]
+
+
+def wait_for(probe: Callable[[], T], done: Callable[[T], bool], timeout: float = 10.0) -> None:
+    """Poll ``probe`` until ``done`` holds of its value: what a server does after the
+    client has heard the outcome (freeing a session) happens a moment later."""
+    deadline = time.monotonic() + timeout
+    while not done(value := probe()):
+        assert time.monotonic() < deadline, f"not within {timeout:g} s: {value}"
+        time.sleep(0.05)
 
 
 def assert_still_serves(runner: SecureRunner) -> None:
@@ -149,13 +161,9 @@ def test_killed_garbler_gives_a_clear_error_and_frees_the_session(services, runn
     finally:
         victim.stop()
     assert delay < 5.0, message
-    deadline = time.monotonic() + 10
-    while True:
-        now = runner.health("evaluator")["sessions"]
-        if now["active"] == before["active"] and now["failed"] == before["failed"] + 1:
-            break
-        assert time.monotonic() < deadline, f"session not freed: {now}"
-        time.sleep(0.05)
+    wait_for(lambda: runner.health("evaluator")["sessions"],
+             lambda now: (now["active"], now["failed"]) == (before["active"],
+                                                            before["failed"] + 1))
     assert_still_serves(runner)
 
 
@@ -362,8 +370,5 @@ def test_circuits_over_the_daemons_and_limit_are_refused(cache):
         assert_still_serves(limited)
         # the other server learns of the refusal (or crosses the limit itself) a moment
         # after the client hears of it
-        deadline = time.monotonic() + 10
         for role in ("garbler", "evaluator"):
-            while (active := limited.health(role)["sessions"]["active"]) != 0:
-                assert time.monotonic() < deadline, f"{role} kept {active} session(s)"
-                time.sleep(0.05)
+            wait_for(lambda r=role: limited.health(r)["sessions"], lambda now: now["active"] == 0)

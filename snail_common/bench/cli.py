@@ -162,16 +162,15 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
             as_json: bool) -> None:
     """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
     per link, and the servers' peak memory. Circuits are compiled on first use."""
+    from snail_client.bench import service_report
+    from snail_client.embedded import check_addresses
     from snail_common.loc.circuits import Spec
 
-    if (garbler is None) != (evaluator is None) or (garbler is not None) != bool(tls_dir):
-        raise click.UsageError("--garbler, --evaluator and --tls-dir go together (or none, "
-                               "for daemons on loopback)")
     try:
+        check_addresses(garbler, evaluator, tls_dir)
         specs = [Spec(algorithm, mode, solver, n) for n in points or (6, 12, 64, 256)]
     except ValueError as e:
         raise click.UsageError(str(e)) from None
-    from snail_client.bench import service_report
     from snail_client.secure import ServiceError
 
     try:

@@ -143,9 +143,12 @@ class CircuitBuilder:
         """Stop now with CircuitTooLarge if the finished circuit will have ``total`` AND
         gates, over the limit in force: a program that repeats a block can refuse after
         building one repetition rather than after as many as fit under the limit."""
-        if self._max_and is not None and total > self._max_and:
+        if self._over_limit(total):
             raise CircuitTooLarge(f"{why}: about {total:,} AND gates, more than "
                                   f"{self._max_and:,}")
+
+    def _over_limit(self, n_and: int) -> bool:
+        return self._max_and is not None and n_and > self._max_and
 
     # ---- gates -----------------------------------------------------------------------
     @staticmethod
@@ -213,10 +216,10 @@ class CircuitBuilder:
         xdepth = self._xdepth.view
         dx, dy = depth[xf], depth[yf]
         if kind == AND:
-            self._n_and += n
-            if self._max_and is not None and self._n_and > self._max_and:
+            if self._over_limit(self._n_and + n):  # refused batches are not counted
                 raise CircuitTooLarge(f"the circuit needs more than {self._max_and:,} "
                                       "AND gates")
+            self._n_and += n
             d = np.maximum(dx, dy) + 1
             xd = np.zeros(n, np.int32)
         else:

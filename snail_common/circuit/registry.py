@@ -74,23 +74,26 @@ def compiled(circuit_id: str, max_and: int | None = None) -> tuple[Circuit, Sche
             _lru.move_to_end(circuit_id)
             return _within(circuit_id, hit, max_and)
         lock = _build_locks.setdefault(circuit_id, threading.Lock())
-    with lock:  # one builder per id; others wait for it and then hit the LRU
-        with _lru_lock:
-            hit = _lru.get(circuit_id)
-        if hit is None:
+    try:
+        with lock:  # one builder per id; others wait for it and then hit the LRU
+            with _lru_lock:
+                hit = _lru.get(circuit_id)
+            if hit is not None:
+                return _within(circuit_id, hit, max_and)
             try:
                 with and_gate_limit(max_and):
                     built = cache.cached(name, build)
             except CircuitTooLarge as exc:
                 raise CircuitTooLarge(f"{circuit_id}: {exc}") from None
-            hit = _within(circuit_id, built, max_and)
+            hit = _within(circuit_id, built, max_and)  # a refused circuit stays out
             with _lru_lock:
                 _lru[circuit_id] = hit
                 while len(_lru) > LRU_SIZE:
                     _lru.popitem(last=False)
-    with _lru_lock:
-        _build_locks.pop(circuit_id, None)
-    return _within(circuit_id, hit, max_and)
+            return hit
+    finally:  # also after a refusal or a failed build: ids come from requests
+        with _lru_lock:
+            _build_locks.pop(circuit_id, None)
 
 
 def _within(circuit_id: str, hit: tuple[Circuit, Schedule],
