@@ -16,7 +16,7 @@ import numpy as np
 
 from snail_common.loc.problem import PoseVectors, ProblemError, load_problem, load_sequence
 
-from .localize import BACKENDS, Options, localize, secure_runner
+from .localize import BACKENDS, Options, backend_for, localize
 from .secure import ServiceError
 
 
@@ -67,9 +67,9 @@ def _options(fn: Callable) -> Callable:
 
 def _make_options(kw: dict) -> Options:
     try:
-        return Options(kw["algorithm"], kw["mode"], kw["solver"], kw["backend"],
-                       kw["max_iterations"], kw["min_invocations"], kw["pad_points"],
-                       kw["garbler"], kw["evaluator"], kw["tls_dir"], kw["do_iterations"])
+        return Options(**{k: kw[k] for k in (
+            "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
+            "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 
@@ -100,10 +100,10 @@ def _fail(code: int, message: str) -> None:
 def _run(problems: list, options: Options, as_json: bool, output: str | None) -> None:
     records = []
     try:
-        with secure_runner(options) as runner:
+        with backend_for(options) as backend:
             previous: PoseVectors | None = None
             for index, problem in enumerate(problems):
-                record = localize(problem, options, runner, initial=previous)
+                record = localize(problem, options, backend, initial=previous)
                 if len(problems) > 1:
                     record["frame"] = index
                 records.append(record)

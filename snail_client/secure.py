@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from snail_common import families
 from snail_common.circuit import registry
 from snail_common.gc import (
     IntegrityError,
@@ -133,6 +134,7 @@ class AsyncSecureRunner:
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  connect_timeout: float = 10.0) -> None:
+        families.register_all()
         self.garbler_addr = _addr(garbler_addr, "garbler address")
         self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
         self.ctx = tls.client_context(tls_dir, "client")

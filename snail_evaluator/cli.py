@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from snail_common import families
 from snail_common.net import tls
 from snail_common.net.cli import address, daemon_options, options_from
 from snail_common.net.conn import format_addr
@@ -24,6 +25,7 @@ def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> Non
         ctx = tls.server_context(tls_dir, "evaluator")
     except (OSError, ValueError) as exc:
         raise click.UsageError(f"--tls-dir: {exc}") from None
+    families.register_all()
     daemon = EvaluatorDaemon(options_from(kwargs), setup("evaluator", log_level))
     try:
         run_daemon(daemon, listen, ctx)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from snail_common import families
 from snail_common.net import tls
 from snail_common.net.cli import address, daemon_options, options_from
 from snail_common.net.conn import format_addr
@@ -28,6 +29,7 @@ def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_
         client_ctx = tls.client_context(tls_dir, "garbler")
     except (OSError, ValueError) as exc:
         raise click.UsageError(f"--tls-dir: {exc}") from None
+    families.register_all()
     daemon = GarblerDaemon(options_from(kwargs), setup("garbler", log_level), evaluator,
                            client_ctx)
     try:

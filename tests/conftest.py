@@ -7,7 +7,10 @@ from pathlib import Path
 
 from hypothesis import settings
 
+from snail_common import families
+
 sys.path.insert(0, str(Path(__file__).parent))
+families.register_all()  # every circuit id the tests name
 
 # Compiled circuits go to a throwaway cache (shared by daemons the tests start), never to
 # the user's cache, unless the caller chose one. It holds gigabytes once the large circuits

@@ -7,9 +7,9 @@ from arith_harness import Compiled
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from snail_bench.ops import ops_report
 from snail_common.arith import fadd, fcmp, fconst, fconvert, fdiv, fmul, fsqrt
 from snail_common.arith import mirror as MR
-from snail_common.bench.ops import ops_report
 
 F = "float32"
 RNG = np.random.default_rng(2024)

@@ -7,16 +7,10 @@ import numpy as np
 from click.testing import CliRunner
 from shared_paths import BRISTOL
 
-from snail_common.bench.cli import main as bench
+from snail_bench.cli import main as bench
 from snail_common.circuit import CircuitBuilder, cache, encode_inputs, evaluate
-from snail_common.circuit.cache import (
-    cache_dir,
-    cached,
-    cached_interface,
-    code_digest,
-    load,
-    source_digest,
-)
+from snail_common.circuit.cache import cache_dir, cached, cached_interface, load
+from snail_common.circuit.schedule import SCHEDULE_VERSION
 
 
 def _adder():
@@ -59,7 +53,7 @@ def test_hash_changes_with_the_netlist():
 
 def test_corrupt_cache_file_is_detected_and_rebuilt(tmp_path):
     cached("adder-v1", _adder, tmp_path)
-    path = tmp_path / f"adder-v1.{code_digest()}.npz"
+    path = tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.npz"
     with np.load(path) as d:
         arrays = dict(d)
     arrays["a"] = arrays["a"].copy()
@@ -74,9 +68,9 @@ def test_corrupt_cache_file_is_detected_and_rebuilt(tmp_path):
     assert c.content_hash() == _adder().content_hash()
 
 
-def test_changed_code_never_loads_a_stale_circuit(tmp_path, monkeypatch):
-    """Same name, different circuit-building code: the cache builds anew instead of
-    returning what the old code made."""
+def test_a_new_scheduler_never_loads_a_stale_schedule(tmp_path, monkeypatch):
+    """Same name, another scheduler version: the cache builds anew instead of returning
+    what the old scheduler made (garbler and evaluator number gates in schedule order)."""
     builds = []
 
     def build():
@@ -86,7 +80,7 @@ def test_changed_code_never_loads_a_stale_circuit(tmp_path, monkeypatch):
     cached("adder-v1", build, tmp_path)
     cached("adder-v1", build, tmp_path)
     assert len(builds) == 1
-    monkeypatch.setattr("snail_common.circuit.cache.code_digest", lambda: "0123456789abcdef")
+    monkeypatch.setattr("snail_common.circuit.cache.SCHEDULE_VERSION", SCHEDULE_VERSION + 1)
     cached("adder-v1", build, tmp_path)
     assert len(builds) == 2
     assert len(list(tmp_path.glob("adder-v1.*.npz"))) == 2
@@ -120,25 +114,11 @@ def test_interface_comes_from_the_sidecar_or_an_unscheduled_build(tmp_path, monk
 
 def test_corrupt_interface_sidecar_is_rebuilt(tmp_path):
     iface = cached_interface("adder-v1", _adder, tmp_path)
-    path = tmp_path / f"adder-v1.{code_digest()}.interface.json"
+    path = tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.interface.json"
     for bad in (b"{not json", json.dumps({**iface.to_json(), "n_inputs": 5}).encode()):
         path.write_bytes(bad)
         assert cached_interface("adder-v1", _adder, tmp_path) == iface
         assert json.loads(path.read_bytes()) == iface.to_json()
-
-
-def test_source_digest_follows_every_circuit_source_file(tmp_path):
-    for package in ("arith", "circuit", "loc", "net"):
-        (tmp_path / package).mkdir()
-        (tmp_path / package / "m.py").write_text("x = 1\n")
-    before = source_digest(tmp_path)
-    (tmp_path / "net" / "m.py").write_text("x = 2\n")  # not circuit code
-    assert source_digest(tmp_path) == before
-    (tmp_path / "loc" / "m.py").write_text("x = 2\n")
-    changed = source_digest(tmp_path)
-    assert changed != before
-    (tmp_path / "arith" / "new.py").write_text("")
-    assert source_digest(tmp_path) != changed
 
 
 def test_cache_dir_env_override(monkeypatch, tmp_path):

@@ -1,5 +1,5 @@
 """Schedule invariants on random circuits: every gate once, reads after writes, no clobbering;
-slot layout and the cleartext evaluator's strided runs on a wide circuit."""
+slot layout and the plan's strided runs on a wide circuit."""
 
 import numpy as np
 import pytest
@@ -7,26 +7,21 @@ from circuit_oracle import direct_eval
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from snail_common.bench.compiler import build_multipliers
+from snail_bench.compiler import build_multipliers
 from snail_common.circuit import CircuitBuilder, evaluate_bits, run_schedule, schedule_circuit
-from snail_common.circuit.cleartext import (
-    MIN_RUN,
-    RAGGED_ROWS,
-    _GatherOp,
-    _plan_for,
-    _RaggedOp,
-    _RunOp,
-    _view,
-)
+from snail_common.circuit.fold import AND_STEP, LINEAR_STEP, fold
 from snail_common.circuit.ir import AND, FIRST_INPUT
-from snail_common.circuit.schedule import (
-    AND_STEP,
-    LINEAR_STEP,
-    Schedule,
-    _allocate_slots,
-    _fold,
-    _order_rows,
+from snail_common.circuit.layout import allocate_slots, order_rows
+from snail_common.circuit.plan import (
+    AndPlan,
+    LinearGroup,
+    RaggedGroup,
+    RunGroup,
+    plan_for,
 )
+from snail_common.circuit.runs import MIN_RUN
+from snail_common.circuit.schedule import Schedule
+from snail_common.circuit.slots import as_rows, part
 
 
 @st.composite
@@ -92,7 +87,7 @@ def test_schedule_matches_gate_by_gate_evaluation(circuit):
 @settings(max_examples=150, deadline=None)
 @given(random_circuits())
 def test_every_and_gate_scheduled_once_and_reads_follow_writes(circuit):
-    plan = _fold(circuit, 4)
+    plan = fold(circuit, 4)
     and_gates = np.flatnonzero(circuit.kind == AND) + circuit.first_gate_wire
     assert np.array_equal(np.sort(plan.and_out), and_gates)
     # each AND step holds exactly one AND-depth, in increasing order
@@ -103,10 +98,10 @@ def test_every_and_gate_scheduled_once_and_reads_follow_writes(circuit):
     assert all(len(d) == 1 for d in step_depths)
     assert [int(d[0]) for d in step_depths] == sorted({int(d[0]) for d in step_depths})
     assert len(np.unique(plan.lin_out)) == len(plan.lin_out)
-    death = _order_rows(circuit, plan)
-    slot_of, n_slots = _allocate_slots(circuit, plan, death, reuse=True)
+    death = order_rows(circuit, plan)
+    slot_of, n_slots = allocate_slots(circuit, plan, death, reuse=True)
     _check_slot_discipline(circuit, plan, slot_of)
-    _, n_plain = _allocate_slots(circuit, plan, death, reuse=False)
+    _, n_plain = allocate_slots(circuit, plan, death, reuse=False)
     assert n_slots <= n_plain
 
 
@@ -151,23 +146,29 @@ def test_linear_rows_sorted_by_term_count_and_schedule_round_trips(circuit):
     assert np.array_equal(evaluate_bits(again, bits), evaluate_bits(sched, bits))
 
 
-@given(st.integers(0, 50), st.integers(-7, 7), st.integers(1, 40))
-def test_view_selects_equally_spaced_slots(start, stride, n):
+@given(st.integers(0, 50), st.integers(1, 7), st.integers(1, 40), st.data())
+def test_rows_name_the_same_slots_as_the_index_list(start, stride, n, data):
     slots = np.arange(400)
-    first = start + max(0, -stride) * (n - 1)  # keep every slot >= 0
-    want = first + stride * np.arange(n)
-    got = np.broadcast_to(slots[_view(first, stride, n)], (n,))
-    assert np.array_equal(got, want)
+    idx = start + stride * np.arange(n)
+    rows = as_rows(idx, strided=True)
+    assert isinstance(rows, slice) == (stride == 1 or n == 1 or n >= 4)
+    assert np.array_equal(slots[rows], idx)
+    k = data.draw(st.integers(0, n - 1))
+    m = data.draw(st.integers(1, n - k))
+    assert np.array_equal(slots[part(rows, k, m)], idx[k : k + m])
+    assert isinstance(as_rows(idx), slice) == (stride == 1 or n == 1)  # adjacent only
 
 
 def test_wide_circuit_runs_entirely_on_strided_views():
     """160 multipliers side by side: every step row falls in a run, results are products."""
     circuit = build_multipliers(160)
     sched = schedule_circuit(circuit)
-    plan = _plan_for(sched)
-    ops = [op for step in plan.steps for op in step.ops]
-    assert all(isinstance(op, _RunOp) for op in ops)
-    rows = [len(range(*op.out.indices(sched.n_slots))) for op in ops]
+    plan = plan_for(sched, strided=True)
+    pieces = [g for step in plan.steps
+              for g in (step.groups if hasattr(step, "groups") else [step])]
+    assert all(isinstance(p, (AndPlan, RunGroup)) for p in pieces)
+    assert all(isinstance(p.out, slice) for p in pieces)
+    rows = [len(range(*p.out.indices(sched.n_slots))) for p in pieces]
     assert sum(rows) == sched.n_and + len(sched.lin_out)
     assert min(rows) >= 160  # every run spans all multipliers
     rng = np.random.default_rng(3)
@@ -178,14 +179,16 @@ def test_wide_circuit_runs_entirely_on_strided_views():
     out = evaluate_bits(sched, bits.reshape(64 * lanes, -1).astype(bool))
     got = (out.reshape(64 * lanes, 160, 32) << np.arange(32, dtype=np.uint64)).sum(axis=2)
     assert np.array_equal(got, (x * y) & np.uint64(0xFFFFFFFF))
+    one_lane = evaluate_bits(sched, bits.reshape(64 * lanes, -1)[:64].astype(bool))
+    assert np.array_equal(one_lane, out[:64])  # single-word rows: the strided plan
 
 
-@pytest.mark.parametrize(("n", "leftover_op"), [(MIN_RUN, _RaggedOp),
-                                                (RAGGED_ROWS + 1, _GatherOp)])
-def test_step_writing_its_own_reads_is_evaluated_before_writing(n, leftover_op):
+@pytest.mark.parametrize(("n", "leftover"), [(MIN_RUN, RaggedGroup), (2048, LinearGroup)])
+def test_step_writing_its_own_reads_is_evaluated_before_writing(n, leftover):
     """An older schedule may let a step's outputs reuse slots the same step reads: the 2-term
-    group overwrites x3's slot before the 3-term group reads it unless the step is deferred.
-    The 2-term rows form a strided run, the scrambled 3-term rows are left to gathers."""
+    group overwrites x3's slot before the 3-term group reads it unless the step computes
+    everything first. The 2-term rows form a run, the scrambled 3-term rows are left to
+    gathers (a ragged group while they are few)."""
     x = [FIRST_INPUT + k * n + np.arange(n) for k in range(4)]  # four input groups
     n_inputs = 4 * n
     fresh = FIRST_INPUT + n_inputs + np.arange(n)
@@ -202,9 +205,9 @@ def test_step_writing_its_own_reads_is_evaluated_before_writing(n, leftover_op):
               "meta": np.array([n_inputs, FIRST_INPUT + n_inputs + n])}  # no disjoint_io
     sched = Schedule.from_arrays(arrays, prefix="")
     assert not sched.disjoint_io
-    plan = _plan_for(sched)
-    assert plan.steps[0].defer
-    assert {type(op) for op in plan.steps[0].ops} == {_RunOp, leftover_op}
+    plan = plan_for(sched, strided=True)
+    assert not plan.steps[0].direct
+    assert {type(g) for g in plan.steps[0].groups} == {RunGroup, leftover}
     words = np.random.default_rng(1).integers(0, 2**63, (n_inputs, 1), dtype=np.uint64)
     v = {int(w): words[w - FIRST_INPUT] for w in np.concatenate(x)}
     want = [v[a] ^ v[b] for a, b in zip(x[0], x[1])]

@@ -1,7 +1,7 @@
 """``snail-bench engine`` runs end to end (garbler and evaluator processes included) and
 prints the documented shape; a small configuration keeps it a smoke test."""
 
-from snail_common.bench.engine import engine_report
+from snail_bench.engine import engine_report
 
 RATES = ("aes_blocks_per_s", "garble_and_per_s", "evaluate_and_per_s", "end_to_end_and_per_s")
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from snail_common.bench.ops import op_builders
+from snail_common.arith.catalog import OPS
 from snail_common.circuit import (
     CircuitBuilder,
     decode_outputs,
@@ -22,7 +22,7 @@ from snail_common.circuit import (
 from snail_common.gc import garbled_run
 
 LANES = 64
-OPS = op_builders()
+
 REQUIRED = {"add", "sub", "mul", "div", "div_depth_opt", "sqrt", "lt", "le", "eq", "min", "max",
             "i2f", "f2i", "mul_const"}
 

@@ -12,6 +12,7 @@ from shared_paths import BRISTOL
 
 from snail_common.circuit import CircuitBuilder, evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import load_bristol
+from snail_common.circuit.plan import AndPlan, _ReadRows, plan_for
 from snail_common.circuit.schedule import Schedule
 from snail_common.gc import (
     Evaluator,
@@ -22,7 +23,6 @@ from snail_common.gc import (
     fresh_seed,
     garbled_run,
 )
-from snail_common.gc.plan import AndPlan, _ReadRows, plan_for
 
 
 @st.composite
@@ -233,9 +233,9 @@ def test_contiguous_outputs_are_written_in_place():
     schedule = contiguous_schedule()
     lin0, and1, _, and3 = plan_for(schedule).steps
     assert lin0.direct and and1.direct and and3.direct
-    assert lin0.groups[0].out == slice(8, 11)
+    assert lin0.groups[0].out == slice(8, 11, 1)
     assert (and1.out, and1.b, and3.out, and3.a, and3.b) == (
-        slice(11, 15), slice(3, 7), slice(5, 8), slice(2, 5), slice(11, 14))
+        slice(11, 15, 1), slice(3, 7, 1), slice(5, 8, 1), slice(2, 5, 1), slice(11, 14, 1))
     bits = np.random.default_rng(12).integers(0, 2, (16, 6)).astype(bool)
     expect = evaluate_bits(schedule, bits)
     assert len({tuple(row) for row in expect}) > 1

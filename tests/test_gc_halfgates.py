@@ -56,7 +56,7 @@ def test_kernels_match_reference(n, g0, seed):
     kernel = HalfGates(key, 64, delta)
     tables = np.empty((2 * n, 2), np.uint64)
     c0 = np.empty((n, 2), np.uint64)
-    kernel.garble(labels, a, b, g0, tables, c0)
+    kernel.garble(labels, a, b, g0, c0, tables)
     for i in range(n):
         tg, te, c = ref.garble(to_int(labels[a[i]]), to_int(labels[b[i]]), g0 + i)
         assert (to_int(tables[i]), to_int(tables[n + i]), to_int(c0[i])) == (tg, te, c)
@@ -69,7 +69,7 @@ def test_kernels_match_reference(n, g0, seed):
     active_b = labels ^ np.where(vb[:, None], delta, 0).astype(np.uint64)
     both = np.concatenate([active, active_b])
     c = np.empty((n, 2), np.uint64)
-    HalfGates(key, 64).evaluate(both, a, b + 50, g0, tables, c)
+    HalfGates(key, 64).evaluate(both, a, b + 50, g0, c, tables)
     # the reference zero-labels for operand b now come from the second half (same values)
     expect = c0 ^ np.where((va[a] & vb[b])[:, None], delta, 0).astype(np.uint64)
     assert np.array_equal(c, expect)

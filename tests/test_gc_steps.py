@@ -11,7 +11,7 @@ import pytest
 from shared_paths import BRISTOL
 
 from snail_common.arith import fadd, fdiv, fmul, integer
-from snail_common.bench.ops import op_builders
+from snail_common.arith.catalog import OPS
 from snail_common.circuit import (
     CircuitBuilder,
     decode_outputs,
@@ -47,7 +47,7 @@ def ripple_add(bits: int):
 
 
 def float_op(name: str):
-    fn, n_args, in_dtype, out_dtype = op_builders()[name]
+    fn, n_args, in_dtype, out_dtype = OPS[name]
     b = CircuitBuilder()
     out = fn(b, *(b.input(f"x{i}", (), 32, in_dtype) for i in range(n_args)))
     b.output("r", out[None] if out_dtype == "bool" else out, out_dtype)
@@ -78,7 +78,7 @@ def ldlt_chain():
 BRISTOL_FILES = sorted(p for p in BRISTOL.glob("*.txt") if not p.name.startswith("LICENSE"))
 CIRCUITS = {
     **{f"ripple_add{n}": (lambda n=n: ripple_add(n)) for n in (8, 32, 64)},
-    **{name: (lambda name=name: float_op(name)) for name in op_builders()},
+    **{name: (lambda name=name: float_op(name)) for name in OPS},
     "ldlt6": ldlt_chain,
     **{p.stem: (lambda p=p: load_bristol(p)) for p in BRISTOL_FILES},
 }

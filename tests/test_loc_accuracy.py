@@ -13,33 +13,34 @@ import pytest
 from shared_paths import EXAMPLES as EXAMPLES_DIR
 
 from snail_common.loc.accuracy import compare_with_opencv
-from snail_common.loc.backends import CircuitIteration, MirrorIteration
-from snail_common.loc.circuits import Spec
+from snail_common.loc.backends import CircuitBackend, MirrorBackend
+from snail_common.loc.pipeline import Options, localize
 from snail_common.loc.problem import load_problem
-from snail_common.loc.reference import solve
 from snail_common.loc.synthetic import random_scene
 
 EXAMPLES = sorted(EXAMPLES_DIR.glob("*.json"))
+
+
+def solve(problem, backend, algorithm, solver="ldlt"):
+    return localize(problem, Options(algorithm, solver=solver, min_invocations=0), backend)
 
 
 @pytest.mark.parametrize("algorithm", ["lm", "gn"])
 @pytest.mark.parametrize("name", ["synthetic_n6.json", "apriltag_4corners.json"])
 def test_examples_through_the_cleartext_circuit(name, algorithm):
     problem = load_problem(EXAMPLES_DIR / name)
-    spec = Spec(algorithm, "sil", "ldlt", len(problem.points2d))
-    result = solve(problem, CircuitIteration(spec), algorithm)
+    result = solve(problem, CircuitBackend(), algorithm)
     check = compare_with_opencv(problem, result.rvec, result.tvec)
     assert check["ok"], check
-    assert result.run.converged
-    assert result.run.invocations >= result.run.iterations >= 1
+    assert result.converged
+    assert result.invocations >= result.iterations >= 1
 
 
 @pytest.mark.parametrize("algorithm", ["lm", "gn"])
 @pytest.mark.parametrize("path", EXAMPLES, ids=lambda p: p.name)
 def test_every_example_through_the_mirror(path, algorithm):
     problem = load_problem(path)
-    spec = Spec(algorithm, "sil", "ldlt", len(problem.points2d))
-    result = solve(problem, MirrorIteration(spec), algorithm)
+    result = solve(problem, MirrorBackend(), algorithm)
     check = compare_with_opencv(problem, result.rvec, result.tvec)
     assert check["ok"], check
 
@@ -52,7 +53,7 @@ def test_random_scenes_match_opencv(algorithm):
     for k in range(150):
         n = int(rng.choice([4, 6, 9, 12, 24]))
         problem = random_scene(rng, n)
-        result = solve(problem, MirrorIteration(Spec(algorithm, "sil", "ldlt", n)), algorithm)
+        result = solve(problem, MirrorBackend(), algorithm)
         check = compare_with_opencv(problem, result.rvec, result.tvec)
         if not check["ok"]:
             failures.append((k, n, check))
@@ -66,6 +67,6 @@ def test_svd_solver_matches_opencv(algorithm):
     for _ in range(25):
         n = int(rng.choice([4, 6, 12]))
         problem = random_scene(rng, n)
-        result = solve(problem, MirrorIteration(Spec(algorithm, "sil", "svd", n)), algorithm)
+        result = solve(problem, MirrorBackend(), algorithm, solver="svd")
         check = compare_with_opencv(problem, result.rvec, result.tvec)
         assert check["ok"], check

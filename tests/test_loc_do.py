@@ -15,8 +15,10 @@ from snail_common.circuit import CircuitBuilder
 from snail_common.circuit.builder import CircuitTooLarge, and_gate_limit
 from snail_common.circuit.cleartext import evaluate
 from snail_common.loc.backends import sil_values
-from snail_common.loc.circuits import Spec, run_mirror
-from snail_common.loc.do import (
+from snail_common.loc.driver import run_lm
+from snail_common.loc.geometry import so3_exp
+from snail_common.loc.types import IterationResult, Normalized, Pose
+from snail_common.pnp.do import (
     OUTPUT_SHAPES,
     cayley64,
     cayley_update,
@@ -24,11 +26,9 @@ from snail_common.loc.do import (
     do_reference,
     do_states,
 )
-from snail_common.loc.driver import run_lm
-from snail_common.loc.fops import CircuitBackend, F, MirrorBackend
-from snail_common.loc.geometry import so3_exp
-from snail_common.loc.sil import input_shapes
-from snail_common.loc.types import IterationResult, Normalized, Pose
+from snail_common.pnp.fops import CircuitBackend, F, MirrorBackend
+from snail_common.pnp.sil import input_shapes
+from snail_common.pnp.spec import Spec, run_mirror
 
 MIRROR = MirrorBackend()
 FOCAL = 800.0

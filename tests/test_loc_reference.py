@@ -10,6 +10,7 @@ from hypothesis.extra.numpy import arrays
 from shared_paths import EXAMPLES
 
 from snail_common.loc.accuracy import compare_with_opencv
+from snail_common.loc.backends import Float64Backend
 from snail_common.loc.geometry import (
     apply_step,
     pose_from_rvec_tvec,
@@ -17,17 +18,11 @@ from snail_common.loc.geometry import (
     rvec_from_matrix,
     so3_exp,
 )
+from snail_common.loc.pipeline import Options, localize
 from snail_common.loc.preprocess import distortion_weights, normalize, pad
 from snail_common.loc.problem import PoseVectors, Problem, ProblemError, load_problem
-from snail_common.loc.reference import (
-    iteration_float64,
-    reprojection_rms,
-    residuals_and_jacobian,
-    solve,
-    solve_float64,
-)
+from snail_common.loc.reference import iteration_float64, reprojection_rms, residuals_and_jacobian
 from snail_common.loc.synthetic import random_scene
-from snail_common.loc.types import Pose
 
 EXAMPLE_FILES = sorted(EXAMPLES.glob("*.json"))
 SCENES = 500  # random synthetic scenes for the OpenCV comparison
@@ -44,6 +39,12 @@ def _scene(seed: int, n: int = 12) -> Problem:
 
 def _with(problem: Problem, **fields) -> Problem:
     return Problem(**{**problem.__dict__, **fields})
+
+
+def solve_float64(problem: Problem, algorithm: str = "lm", **options):
+    """The plain reference solve: the pipeline on the float64 backend."""
+    return localize(problem, Options(algorithm, min_invocations=0, **options),
+                    Float64Backend())
 
 
 # --- geometry ------------------------------------------------------------------------
@@ -270,7 +271,7 @@ def test_reference_matches_opencv_on_examples(path, algorithm):
     sol = solve_float64(problem, algorithm)
     cmp = compare_with_opencv(problem, sol.rvec, sol.tvec)
     assert cmp["ok"] and cmp["ok_refine_lm"], cmp
-    assert sol.run.converged and sol.run.iterations < 20
+    assert sol.converged and sol.iterations < 20
     assert sol.rms_px == pytest.approx(cmp["rms_px"])
     # Far better than where it started.
     start = reprojection_rms(problem, problem.initial_pose.rvec, problem.initial_pose.tvec)
@@ -285,7 +286,7 @@ def test_reference_matches_opencv_on_random_scenes(algorithm):
         problem = random_scene(rng, int(rng.choice([4, 5, 6, 8, 12, 32, 64])))
         sol = solve_float64(problem, algorithm)
         cmp = compare_with_opencv(problem, sol.rvec, sol.tvec)
-        results.append((cmp["ok"], cmp["ok_refine_lm"], sol.run.converged))
+        results.append((cmp["ok"], cmp["ok_refine_lm"], sol.converged))
     ok, ok_lm, converged = np.mean(results, axis=0)
     assert ok >= 0.99 and ok_lm >= 0.99, (ok, ok_lm)
     assert converged >= 0.99
@@ -305,9 +306,9 @@ def test_reference_matches_opencv_through_strong_distortion(algorithm):
 
 def test_padded_solve_agrees_and_behind_camera_is_refused():
     problem = _scene(21, n=6)
-    a, b = solve_float64(problem), solve(problem, iteration_float64, n_total=12)
+    a, b = solve_float64(problem), solve_float64(problem, pad_points=12)
     np.testing.assert_allclose(b.rvec, a.rvec, atol=1e-9)
-    assert b.run.invocations == a.run.invocations
+    assert b.invocations == a.invocations
     flipped = _with(problem, initial_pose=PoseVectors(problem.initial_pose.rvec,
                                                       -problem.initial_pose.tvec))
     with pytest.raises(ProblemError, match="behind the camera"):
@@ -319,4 +320,3 @@ def test_gn_and_lm_reach_the_same_pose():
     lm, gn = solve_float64(problem, "lm"), solve_float64(problem, "gn")
     np.testing.assert_allclose(lm.rvec, gn.rvec, atol=1e-5)
     np.testing.assert_allclose(lm.tvec, gn.tvec, atol=1e-4)
-    assert isinstance(lm.run.pose, Pose)

@@ -10,10 +10,10 @@ from hypothesis import strategies as st
 
 from snail_common.circuit import CircuitBuilder
 from snail_common.circuit.cleartext import evaluate
-from snail_common.loc.do import normal_equations64
-from snail_common.loc.fops import CircuitBackend, F, MirrorBackend
-from snail_common.loc.normal import UPPER, normal_equations
-from snail_common.loc.svd import pinv_step, svd_solve, weighted_system
+from snail_common.pnp.do import normal_equations64
+from snail_common.pnp.fops import CircuitBackend, F, MirrorBackend
+from snail_common.pnp.normal import UPPER, normal_equations
+from snail_common.pnp.svd import pinv_step, svd_solve, weighted_system
 
 MIRROR = MirrorBackend()
 seeds = st.integers(0, 2**32 - 1)

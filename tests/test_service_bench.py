@@ -6,13 +6,13 @@ import subprocess
 import sys
 
 from snail_common.circuit import registry
-from snail_common.loc.circuits import Spec
+from snail_common.pnp.spec import Spec
 
 LABEL_BYTES = 16
 
 
 def _bench(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "snail_common.bench.cli", "service", *args],
+    return subprocess.run([sys.executable, "-m", "snail_bench.cli", "service", *args],
                           capture_output=True, text=True, timeout=300)
 
 

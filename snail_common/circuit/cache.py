@@ -2,14 +2,13 @@
 
 Building and scheduling a large localization circuit takes seconds; both servers load it
 from here instead. The content hash stored with it is what peers compare before a run.
-File names carry a digest of the code that builds and schedules circuits, so a changed
-program or scheduler never loads a stale circuit stored under the same name.
+A file name is the circuit's name (which carries its family's version, see registry.py)
+and the scheduler's version, so a changed circuit or scheduler never loads a stale file,
+while an edit that changes neither (a comment, a refactoring) keeps the cache.
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import json
 import os
 import re
@@ -21,28 +20,10 @@ from typing import BinaryIO
 import numpy as np
 
 from .ir import Circuit, Group, Interface
-from .schedule import Schedule, schedule_circuit
+from .schedule import SCHEDULE_VERSION, Schedule, schedule_circuit
 
 CACHE_ENV = "SNAIL_CACHE_DIR"
 _NAME_OK = re.compile(r"^[A-Za-z0-9_.-]+$")
-# packages of snail_common whose code shapes a compiled circuit or its schedule
-_CIRCUIT_CODE = ("arith", "circuit", "loc")
-
-
-@functools.cache
-def code_digest() -> str:
-    """A short SHA-256 of the circuit-shaping source files (read once per process)."""
-    return source_digest(Path(__file__).resolve().parent.parent)
-
-
-def source_digest(root: Path) -> str:
-    """SHA-256 (16 hex digits) of the names and contents of root/{arith,circuit,loc}/*.py."""
-    digest = hashlib.sha256()
-    for package in _CIRCUIT_CODE:
-        for path in sorted((root / package).glob("*.py")):
-            digest.update(f"{package}/{path.name}\0".encode())
-            digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
 
 
 def cache_dir() -> Path:
@@ -99,8 +80,8 @@ def load(path: Path) -> tuple[Circuit, Schedule]:
 
 def cached(name: str, build: Callable[[], Circuit],
            directory: Path | None = None) -> tuple[Circuit, Schedule]:
-    """The compiled circuit called ``name`` (which must encode every build parameter), built
-    and scheduled on first use by this code (code_digest), loaded from disk afterwards."""
+    """The compiled circuit called ``name`` (which must encode every build parameter and
+    the builder's version), built and scheduled on first use, loaded from disk afterwards."""
     path = _path(name, directory)
     if path.exists():
         try:
@@ -132,7 +113,7 @@ def cached_interface(name: str, build: Callable[[], Circuit],
 def _path(name: str, directory: Path | None) -> Path:
     if not _NAME_OK.match(name):
         raise ValueError(f"circuit cache name {name!r} must match {_NAME_OK.pattern}")
-    return (directory or cache_dir()) / f"{name}.{code_digest()}.npz"
+    return (directory or cache_dir()) / f"{name}.s{SCHEDULE_VERSION}.npz"
 
 
 def _interface_path(npz: Path) -> Path:

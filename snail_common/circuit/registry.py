@@ -1,9 +1,10 @@
 """Circuits by public id: the names client, garbler and evaluator agree on before a run.
 
-An id is ``<family>/<rest>``:
-- ``ops/<op>-x<count>``: ``count`` independent float32 operations (a benchmark and test
-  family), inputs ``x`` and ``y`` of shape (count,) (``x`` only for ``fsqrt``), output ``z``;
-- ``loc/<rest>``: a localization circuit of ``snail_common.loc.circuits``.
+An id is ``<family>/<rest>``. The compiler knows no family: each one (float ops,
+localization circuits) registers a ``Family`` that turns the rest of an id into a
+builder, and a version that it bumps whenever what it builds changes (the cache key;
+``tests/test_circuit_keys.py`` holds the families to that). Whatever imports the
+families (the roles, the benchmarks) registers them with ``register``.
 
 Ids are parsed strictly (bounded parameters) because servers compile whatever a client
 names. Compiled circuits come from the on-disk cache and stay in a small in-process LRU, so
@@ -18,49 +19,64 @@ import re
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-
-from snail_common.arith import fcmp
-from snail_common.arith.fadd import fadd, fsub
-from snail_common.arith.fdiv import fdiv
-from snail_common.arith.fmul import fmul
-from snail_common.arith.fsqrt import fsqrt
+from dataclasses import dataclass
 
 from . import cache
-from .builder import CircuitBuilder, CircuitTooLarge, and_gate_limit
+from .builder import CircuitTooLarge, and_gate_limit
 from .ir import Circuit, Interface
 from .schedule import Schedule
 
-MAX_OPS = 4096
 MAX_ID_LENGTH = 128
 LRU_SIZE = 4
 
 _ID = re.compile(r"^(?P<family>[a-z]+)/(?P<rest>[A-Za-z0-9_.-]+)$")
-_OPS = re.compile(r"^(?P<op>[a-z]+)-x(?P<count>[1-9][0-9]{0,3})$")
+_VERSION = re.compile(r"^[A-Za-z0-9_.]+$")
 
-# op name -> (function of (builder, x, y) or (builder, x), arity, output dtype)
-OPS: dict[str, tuple[Callable, int, str]] = {
-    "fadd": (fadd, 2, "float32"),
-    "fsub": (fsub, 2, "float32"),
-    "fmul": (fmul, 2, "float32"),
-    "fdiv": (fdiv, 2, "float32"),
-    "fsqrt": (fsqrt, 1, "float32"),
-    "fmin": (fcmp.fmin, 2, "float32"),
-    "fmax": (fcmp.fmax, 2, "float32"),
-    "flt": (fcmp.lt, 2, "bool"),
-    "fle": (fcmp.le, 2, "bool"),
-    "feq": (fcmp.eq, 2, "bool"),
-}
-
-FAMILIES = ("ops", "loc")
+__all__ = ["CircuitTooLarge", "Family", "UnknownCircuit", "check_id", "compiled", "families",
+           "interface", "lookup", "register"]
 
 
 class UnknownCircuit(ValueError):
     """The id names no circuit this build can compile."""
 
 
+@dataclass(frozen=True)
+class Family:
+    """A kind of circuit the registry can build.
+
+    ``resolve(rest)`` returns the builder of the circuit ``<name>/<rest>``, or raises
+    UnknownCircuit (or ValueError) naming what is wrong with ``rest``. ``version`` goes
+    into the cache key: change it whenever a circuit of the family changes."""
+
+    name: str
+    version: str
+    resolve: Callable[[str], Callable[[], Circuit]]
+    example: str  # a valid id, for error messages
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"[a-z]+", self.name):
+            raise ValueError(f"family name {self.name!r} must be lower-case letters")
+        if not _VERSION.match(self.version):
+            raise ValueError(f"family version {self.version!r} must match {_VERSION.pattern}")
+
+
+_families: dict[str, Family] = {}
 _lru: OrderedDict[str, tuple[Circuit, Schedule]] = OrderedDict()
 _lru_lock = threading.Lock()
 _build_locks: dict[str, threading.Lock] = {}
+
+
+def register(family: Family) -> None:
+    """Make ``family`` servable (registering the same family again is a no-op)."""
+    known = _families.get(family.name)
+    if known is not None and known != family:
+        raise ValueError(f"circuit family {family.name!r} is already registered")
+    _families[family.name] = family
+
+
+def families() -> tuple[str, ...]:
+    """Names of the registered families, in registration order."""
+    return tuple(_families)
 
 
 def compiled(circuit_id: str, max_and: int | None = None) -> tuple[Circuit, Schedule]:
@@ -132,50 +148,17 @@ def _resolve(circuit_id: str) -> tuple[str, Callable[[], Circuit]]:
     if not isinstance(circuit_id, str) or len(circuit_id) > MAX_ID_LENGTH:
         raise UnknownCircuit(f"circuit id must be a string of at most {MAX_ID_LENGTH} "
                              f"characters, got {circuit_id!r:.80}")
+    known = ", ".join(_families) or "none registered"
     m = _ID.match(circuit_id)
     if not m:
         raise UnknownCircuit(f"malformed circuit id {circuit_id!r} (expected "
-                             f"'<family>/<name>' with family one of {FAMILIES})")
-    family, rest = m["family"], m["rest"]
-    if family == "ops":
-        return _ops(circuit_id, rest)
-    if family == "loc":
-        return _loc(circuit_id, rest)
-    raise UnknownCircuit(f"unknown circuit family {family!r} in {circuit_id!r} "
-                         f"(known: {', '.join(FAMILIES)})")
-
-
-def _ops(circuit_id: str, rest: str) -> tuple[str, Callable[[], Circuit]]:
-    m = _OPS.match(rest)
-    if not m:
-        raise UnknownCircuit(f"malformed ops circuit id {circuit_id!r} "
-                             f"(expected e.g. 'ops/fmul-x64')")
-    op, count = m["op"], int(m["count"])
-    if op not in OPS:
-        raise UnknownCircuit(f"unknown op {op!r} in {circuit_id!r} (known: {', '.join(OPS)})")
-    if count > MAX_OPS:
-        raise UnknownCircuit(f"op count {count} in {circuit_id!r} exceeds {MAX_OPS}")
-    return f"ops-{op}-x{count}", lambda: build_ops(op, count)
-
-
-def build_ops(op: str, count: int) -> Circuit:
-    """``count`` independent float32 ``op``s: z[i] = op(x[i], y[i])."""
-    fn, arity, out_dtype = OPS[op]
-    b = CircuitBuilder()
-    args = [b.input(name, (count,), bits=32, dtype="float32") for name in "xy"[:arity]]
-    z = fn(b, *args)
-    b.output("z", z[..., None] if out_dtype == "bool" else z, dtype=out_dtype)
-    return b.build()
-
-
-def _loc(circuit_id: str, rest: str) -> tuple[str, Callable[[], Circuit]]:
-    from snail_common.loc import circuits as loc  # heavy and optional: only for loc ids
-
-    if not loc.ID_PATTERN.match(rest):
-        raise UnknownCircuit(f"malformed localization circuit id {circuit_id!r} "
-                             f"(expected e.g. 'loc/lm-sil-ldlt-n6')")
+                             f"'<family>/<name>' with family one of: {known})")
+    family = _families.get(m["family"])
+    if family is None:
+        raise UnknownCircuit(f"unknown circuit family {m['family']!r} in {circuit_id!r} "
+                             f"(known: {known})")
     try:
-        spec = loc.Spec.parse(rest)
-    except ValueError as e:
-        raise UnknownCircuit(f"{circuit_id!r}: {e}") from None
-    return spec.cache_name, lambda: loc.build(spec)
+        build = family.resolve(m["rest"])
+    except ValueError as exc:  # UnknownCircuit included
+        raise UnknownCircuit(f"{circuit_id!r}: {exc} (e.g. {family.example!r})") from None
+    return f"{family.name}-{m['rest']}.{family.version}", build

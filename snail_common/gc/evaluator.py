@@ -2,8 +2,9 @@
 
 ``feed`` accepts the stream cut anywhere (frames as sent, or arbitrary socket reads); it
 runs the schedule as far as the bytes received allow, so evaluation of frame k overlaps
-the garbling and transfer of frame k+1. Tables are read in place from the caller's buffer;
-only a block cut by a read boundary is copied (once) into a pending buffer.
+the garbling and transfer of frame k+1: the schedule runner stays suspended before the
+first block whose tables have not arrived. Tables are read in place from the caller's
+buffer; only a block cut by a read boundary is copied (once) into a pending buffer.
 """
 
 from __future__ import annotations
@@ -11,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from snail_common.circuit.ir import FIRST_INPUT
+from snail_common.circuit.plan import plan_for
+from snail_common.circuit.runner import first_block, next_block, run_plan
 from snail_common.circuit.schedule import Schedule
 
 from .halfgates import HalfGates
-from .plan import AndOutputs, AndPlan, Scratch, plan_for
-from .slots import part, slot_view
 from .stream import BYTES_PER_AND, HEADER, Header, StreamError
 
 
@@ -31,20 +32,15 @@ class Evaluator:
                              f"got an array of shape {inputs.shape}")
         self._labels = np.empty((s.n_slots, 2), np.uint64)
         self._labels[: len(inputs)] = inputs
-        self._slots = slot_view(self._labels)
-        self._scratch = Scratch()
-        self._steps = plan_for(s).steps
-        self._step = 0  # next step to run
-        self._done_in_step = 0  # AND gates of the current step already evaluated
         self._need = HEADER.size  # bytes the next unit of work (header or block) takes
         self._pending = bytearray()  # the start of that unit, when a read cut it
         self.header: Header | None = None
-        self._kernel: HalfGates | None = None
-        self._outputs: AndOutputs | None = None
+        self._run = None  # the suspended schedule run, once the header is read
+        self._block: int | None = None  # gates of the block it waits for; None: finished
 
     @property
     def done(self) -> bool:
-        return self.header is not None and self._step == len(self._steps)
+        return self.header is not None and self._block is None
 
     def output_labels(self) -> np.ndarray:
         """Active labels of the output wires, once the whole stream has been fed."""
@@ -79,42 +75,28 @@ class Evaluator:
                 return 0
             self._start(Header.unpack(bytes(data[: HEADER.size])))
             pos = HEADER.size
-        return pos + self._run(data[pos:])
+        return pos + self._run_blocks(data[pos:])
 
     def _start(self, header: Header) -> None:
         s = self._schedule
         header.check(s.n_and, s.n_inputs, len(s.output_slots))
         self.header = header
         self._bytes_per_and = BYTES_PER_AND[header.scheme]
-        self._kernel = HalfGates(header.key, header.block_gates)
-        self._outputs = AndOutputs(self._labels, self._slots, header.block_gates)
+        kernel = HalfGates(header.key, header.block_gates)
+        self._run = run_plan(plan_for(s), self._labels, kernel.evaluate, header.block_gates)
+        self._block = first_block(self._run)
 
-    def _run(self, data: memoryview) -> int:
-        """Run steps while the data holds the next block; returns the bytes consumed."""
-        kernel, outputs, labels, slots = self._kernel, self._outputs, self._labels, self._slots
-        block, per_and, scratch = self.header.block_gates, self._bytes_per_and, self._scratch
-        steps, size, pos = self._steps, len(data), 0
-        while self._step < len(steps):
-            step = steps[self._step]
-            if not isinstance(step, AndPlan):
-                step.run(labels, slots, scratch)
-                self._step += 1
-                continue
-            k = self._done_in_step
-            m = min(block, step.n - k)
+    def _run_blocks(self, data: memoryview) -> int:
+        """Run blocks while the data holds their tables; returns the bytes consumed."""
+        per_and, size, pos = self._bytes_per_and, len(data), 0
+        while self._block is not None:
+            m = self._block
             if size - pos < per_and * m:
                 self._need = per_and * m
                 break
             tables = np.frombuffer(data, np.uint64, 4 * m, pos).reshape(2 * m, 2)
-            kernel.evaluate(labels, part(step.a, k, m), part(step.b, k, m), step.first + k,
-                            tables, outputs.target(step, k, m))
-            outputs.store(step, k, m)
             pos += per_and * m
-            if k + m < step.n:
-                self._done_in_step = k + m
-            else:
-                self._done_in_step = 0
-                self._step += 1
+            self._block = next_block(self._run, tables)
         return pos
 
 

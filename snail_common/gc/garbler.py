@@ -12,12 +12,12 @@ from collections.abc import Iterator
 import numpy as np
 
 from snail_common.circuit.ir import FIRST_INPUT
+from snail_common.circuit.plan import plan_for
+from snail_common.circuit.runner import first_block, next_block, run_plan
 from snail_common.circuit.schedule import Schedule
 
 from .halfgates import HalfGates
 from .labels import check_delta, derive_zero_labels
-from .plan import AndOutputs, AndPlan, Scratch, plan_for
-from .slots import part, slot_view
 from .stream import (
     BLOCK_GATES,
     BYTES_PER_AND,
@@ -70,25 +70,17 @@ class Garbler:
         yield self.header.pack()
         labels = np.empty((s.n_slots, 2), np.uint64)
         labels[: len(self._input_zero)] = self._input_zero
-        slots = slot_view(labels)
         kernel = HalfGates(self.header.key, block, self._delta)
-        outputs, scratch = AndOutputs(labels, slots, block), Scratch()
         frame = np.empty(self._frame_bytes // 8, np.uint64)
-        pos = 0
-        for step in self._plan.steps:
-            if not isinstance(step, AndPlan):
-                step.run(labels, slots, scratch)
-                continue
-            for k in range(0, step.n, block):
-                m = min(block, step.n - k)
-                if pos + 4 * m > len(frame):
-                    yield frame[:pos].tobytes()
-                    pos = 0
-                kernel.garble(labels, part(step.a, k, m), part(step.b, k, m), step.first + k,
-                              frame[pos : pos + 4 * m].reshape(2 * m, 2),
-                              outputs.target(step, k, m))
-                outputs.store(step, k, m)
-                pos += 4 * m
+        run = run_plan(self._plan, labels, kernel.garble, block)
+        pos, m = 0, first_block(run)
+        while m is not None:  # each block's tables go to the frame's next free rows
+            if pos + 4 * m > len(frame):
+                yield frame[:pos].tobytes()
+                pos = 0
+            tables = frame[pos : pos + 4 * m].reshape(2 * m, 2)
+            pos += 4 * m
+            m = next_block(run, tables)
         if pos:
             yield frame[:pos].tobytes()
         self._outputs = labels[s.output_slots].copy()

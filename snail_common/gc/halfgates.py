@@ -25,8 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from snail_common.circuit.slots import Rows, gather_into
+
 from .aes import AesBatch, byte_view
-from .slots import Rows, gather_into
 
 U64 = np.uint64
 
@@ -94,8 +95,8 @@ class HalfGates:
         np.negative(mf, out=mf)
         return m
 
-    def garble(self, labels: np.ndarray, a: Rows, b: Rows, g0: int,
-               tables: np.ndarray, out: np.ndarray) -> None:
+    def garble(self, labels: np.ndarray, a: Rows, b: Rows, g0: int, out: np.ndarray,
+               tables: np.ndarray) -> None:
         """Garble gates (a[i], b[i]) numbered g0+i: write their tables, [TG; TE] as a
         (2n, 2) array, and their output zero-labels into ``out`` (n, 2)."""
         n = len(out)
@@ -120,8 +121,8 @@ class HalfGates:
         np.bitwise_xor(out, self._k01[:n], out=out)
         np.bitwise_xor(t[n:], ab[:n], out=t[n:])  # TE
 
-    def evaluate(self, labels: np.ndarray, a: Rows, b: Rows, g0: int,
-                 tables: np.ndarray, out: np.ndarray) -> None:
+    def evaluate(self, labels: np.ndarray, a: Rows, b: Rows, g0: int, out: np.ndarray,
+                 tables: np.ndarray) -> None:
         """Evaluate gates (a[i], b[i]) numbered g0+i from their tables [TG; TE] (2n, 2);
         write their active output labels into ``out`` (n, 2)."""
         n = len(out)

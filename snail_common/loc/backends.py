@@ -1,9 +1,13 @@
-"""Iteration backends built on a localization circuit: encode the iteration's inputs, run
-the circuit through some bit runner, decode step and cost.
+"""Backends: what runs a localization circuit, one ``run`` call per invocation.
 
-The bit runner is the only thing that differs between the cleartext debug path
-(``cleartext_runner``) and the garbled service (the client's secure runner): the
-encoding, the circuit and the decoding are shared, so the two agree bit for bit.
+The localization pipeline (pipeline.py) builds a circuit's named inputs and reads its
+named outputs; a backend decides how the circuit is computed:
+- ``Float64Backend``: the same algorithm in float64 (the plain reference, for debugging);
+- ``MirrorBackend``: the numpy float32 mirror, bit-identical to the circuit and fast
+  enough for accuracy sweeps over thousands of scenes;
+- ``CircuitBackend``: the circuit itself, its bits run by a ``BitRunner``: evaluated in
+  the clear by default, garbled between the two servers with the client's secure runner
+  (snail_client), so cleartext and garbled runs agree bit for bit.
 """
 
 from __future__ import annotations
@@ -16,28 +20,33 @@ from snail_common.circuit import registry
 from snail_common.circuit.cleartext import decode_outputs, encode_inputs, evaluate_bits
 from snail_common.circuit.ir import Circuit, Interface
 from snail_common.circuit.schedule import Schedule
+from snail_common.pnp import family
+from snail_common.pnp.do import do_reference, normal_equations64, pinv_solve64
+from snail_common.pnp.spec import Spec, run_mirror
 
-from .circuits import Spec, run_mirror
-from .types import IterationResult, Normalized, Pose
+from .types import Normalized, Pose
 
-# (circuit id, input bits (n_inputs,)) -> output bits (n_outputs,)
+Values = dict[str, np.ndarray]
+# (circuit id as servers know it, input bits (n_inputs,)) -> output bits (n_outputs,)
 BitRunner = Callable[[str, np.ndarray], np.ndarray]
 
 
 def compiled(spec: Spec) -> tuple[Circuit, Schedule]:
-    """The circuit of ``spec`` and its schedule (for evaluating it in the clear), through
-    the registry's in-memory LRU and on-disk cache."""
+    """The circuit of ``spec`` and its schedule, through the registry's in-memory LRU and
+    on-disk cache."""
+    registry.register(family.FAMILY)
     return registry.compiled(spec.registry_id)
 
 
 def interface(spec: Spec) -> Interface:
-    """All the client needs to encode, decode and name the circuit of ``spec``."""
+    """All a client needs to encode, decode and name the circuit of ``spec``."""
+    registry.register(family.FAMILY)
     return registry.interface(spec.registry_id)
 
 
-def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> dict[str, np.ndarray]:
-    """The float32 inputs of a SIL circuit for one iteration at ``pose``, or of a DO circuit
-    starting there (its inputs are named like the SIL LM circuit's)."""
+def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> Values:
+    """The inputs of a SIL circuit for one iteration at ``pose``, or of a DO circuit
+    starting there (float64; circuit and mirror round them to float32)."""
     if problem.n != spec.points:
         raise ValueError(f"circuit {spec.circuit_id} takes {spec.points} points, "
                          f"the problem has {problem.n}")
@@ -46,45 +55,87 @@ def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> dict[
               "weights": weights}
     if spec.algorithm == "lm":
         values["lam"] = lam
-    return {k: np.asarray(v, np.float32) for k, v in values.items()}
+    return {k: np.asarray(v, np.float64) for k, v in values.items()}
+
+
+class Backend:
+    """Runs localization circuits; counts its invocations."""
+
+    name = ""
+
+    def __init__(self) -> None:
+        self.invocations = 0
+
+    def run(self, spec: Spec, values: Values) -> Values:
+        """One invocation of the circuit of ``spec`` on named inputs: its named outputs."""
+        self.invocations += 1
+        return self._run(spec, values)
+
+    def _run(self, spec: Spec, values: Values) -> Values:
+        raise NotImplementedError
+
+    def prepare(self, spec: Spec) -> None:
+        """Build or load what running ``spec`` needs, before any invocation is timed."""
+
+    def pad(self, spec: Spec, target: int) -> None:
+        """Dummy invocations until ``target`` have been made, where someone watches how
+        many there are (the servers); nothing to do for a local backend."""
+
+    def traffic(self) -> dict[str, int]:
+        """Bytes per link so far (none for a local backend)."""
+        return {}
+
+
+class Float64Backend(Backend):
+    """The circuit's algorithm in float64: SIL solves exactly, DO iterates in float64."""
+
+    name = "float64"
+
+    def _run(self, spec: Spec, values: Values) -> Values:
+        if spec.mode == "do":
+            *_, before, final = do_reference(values, spec.solver, spec.iterations)
+            return {"R": final["R"], "t": final["t"], "cost": np.float64(final["cost"]),
+                    "previous_cost": np.float64(before["cost"])}
+        hess, grad, cost = normal_equations64(values["R"], values["t"], values["image"],
+                                              values["world"], values["weights"])
+        lam = float(values.get("lam", 0.0))
+        solve = np.linalg.solve if spec.solver == "ldlt" else pinv_solve64
+        step = solve(hess + lam * np.diag(np.diag(hess)), -grad)
+        return {"step": step, "cost": np.float64(cost)}
+
+
+class MirrorBackend(Backend):
+    """The numpy float32 mirror: the circuit's outputs bit for bit, without gates."""
+
+    name = "mirror"
+
+    def _run(self, spec: Spec, values: Values) -> Values:
+        return run_mirror(spec, values)
 
 
 def cleartext_runner(circuit_id: str, bits: np.ndarray) -> np.ndarray:
-    """Evaluate a localization circuit in the clear (debugging and tests)."""
-    _, schedule = compiled(Spec.parse(circuit_id))
+    """Evaluate a registered circuit in the clear (debugging and tests)."""
+    registry.register(family.FAMILY)
+    _, schedule = registry.compiled(circuit_id)
     return evaluate_bits(schedule, bits[None])[0]
 
 
-def run_circuit(spec: Spec, runner: BitRunner, values: dict[str, np.ndarray]
-                ) -> dict[str, np.ndarray]:
-    """Encode ``values``, run the circuit of ``spec`` through ``runner``, decode the outputs."""
-    iface = interface(spec)
-    bits = encode_inputs(iface, values)[0]
-    return decode_outputs(iface, runner(spec.circuit_id, bits))
+class CircuitBackend(Backend):
+    """The circuit: encode the inputs, run the bits through ``runner``, decode."""
 
+    name = "cleartext"
 
-class CircuitIteration:
-    """An ``IterationBackend`` that runs the SIL circuit of ``spec`` through ``runner``."""
+    def __init__(self, runner: BitRunner = cleartext_runner, name: str = "cleartext") -> None:
+        super().__init__()
+        self.runner, self.name = runner, name
 
-    def __init__(self, spec: Spec, runner: BitRunner = cleartext_runner) -> None:
-        self.spec = spec
-        self.runner = runner
-        interface(spec)  # build or load now, not inside the first timed call
+    def prepare(self, spec: Spec) -> None:
+        if self.runner is cleartext_runner:
+            compiled(spec)  # this process evaluates it
+        else:
+            interface(spec)  # the servers evaluate it: the layout is enough here
 
-    def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
-        out = run_circuit(self.spec, self.runner, sil_values(self.spec, problem, pose, lam))
-        return IterationResult(step=np.asarray(out["step"], np.float64),
-                               cost=float(out["cost"]))
-
-
-class MirrorIteration:
-    """An ``IterationBackend`` on the float32 mirror: bit-identical to ``CircuitIteration``
-    (tests hold them together) and fast enough for accuracy sweeps over many scenes."""
-
-    def __init__(self, spec: Spec) -> None:
-        self.spec = spec
-
-    def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
-        out = run_mirror(self.spec, sil_values(self.spec, problem, pose, lam))
-        return IterationResult(step=np.asarray(out["step"], np.float64),
-                               cost=float(out["cost"]))
+    def _run(self, spec: Spec, values: Values) -> Values:
+        iface = interface(spec)
+        bits = encode_inputs(iface, values)[0]
+        return decode_outputs(iface, self.runner(spec.registry_id, bits))

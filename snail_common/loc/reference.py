@@ -1,19 +1,13 @@
-"""The float64 reference: one iteration exactly per types.py (the `float64` backend and the
-yardstick for the float32 circuits), pixel RMS as OpenCV measures it, and the end-to-end
-solve of a problem file with any backend."""
+"""The float64 reference: one iteration exactly per types.py (the yardstick for the float32
+circuits and the driver's tests), and pixel RMS as OpenCV measures it."""
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from .driver import DriverResult, run
-from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
-from .preprocess import normalize, pad
-from .problem import Problem, check_in_front
-from .types import IterationBackend, IterationResult, Normalized, Pose
+from .problem import Problem
+from .types import IterationResult, Normalized, Pose
 
 
 def residuals_and_jacobian(nrm: Normalized, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
@@ -48,34 +42,3 @@ def reprojection_rms(problem: Problem, rvec: np.ndarray, tvec: np.ndarray) -> fl
                                 np.asarray(tvec, dtype=np.float64), problem.K, problem.dist)
     err = proj.reshape(-1, 2) - problem.points2d
     return float(np.sqrt(np.mean(np.sum(err * err, axis=1))))
-
-
-@dataclass(frozen=True)
-class Solution:
-    """A solved problem in the file's world frame; `run` is the driver's record (its pose and
-    cost are in the normalized frame)."""
-
-    rvec: np.ndarray
-    tvec: np.ndarray
-    rms_px: float
-    run: DriverResult
-
-
-def solve(problem: Problem, backend: IterationBackend, algorithm: str = "lm",
-          max_iterations: int = 20, n_total: int | None = None) -> Solution:
-    """Preprocess, (pad to n_total for a fixed-size circuit,) run the driver in the
-    normalized frame from the initial pose, and report in the original frame."""
-    check_in_front(problem)
-    nrm, frame = normalize(problem)
-    if n_total is not None:
-        nrm = pad(nrm, n_total)
-    pose0 = frame.to_normalized(pose_from_rvec_tvec(problem.initial_pose.rvec,
-                                                    problem.initial_pose.tvec))
-    result = run(algorithm, nrm, pose0, backend, max_iterations)
-    rvec, tvec = pose_to_rvec_tvec(frame.to_original(result.pose))
-    return Solution(rvec, tvec, reprojection_rms(problem, rvec, tvec), result)
-
-
-def solve_float64(problem: Problem, algorithm: str = "lm", max_iterations: int = 20) -> Solution:
-    """The plain reference solver (`--backend float64`)."""
-    return solve(problem, iteration_float64, algorithm, max_iterations)

@@ -24,8 +24,8 @@ from typing import Any, TypeVar
 
 from snail_common.circuit import registry
 from snail_common.circuit.ir import Circuit
+from snail_common.circuit.plan import plan_for
 from snail_common.circuit.schedule import Schedule
-from snail_common.gc.plan import plan_for
 
 from . import messages
 from .conn import SOFTWARE, Connection, accept
@@ -91,7 +91,7 @@ class Daemon:
     # ---- helpers for subclasses ----------------------------------------------------------
     def capabilities(self) -> dict[str, Any]:
         return messages.make("capabilities", role=self.role, software=SOFTWARE,
-                             max_frame=MAX_FRAME, families=list(registry.FAMILIES),
+                             max_frame=MAX_FRAME, families=list(registry.families()),
                              max_sessions=self.options.max_sessions)
 
     def health(self) -> dict[str, Any]:

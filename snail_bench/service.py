@@ -15,11 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+from snail_client.embedded import connected
+from snail_client.secure import Invocation, SecureRunner
 from snail_common.circuit import registry
-from snail_common.loc.circuits import Spec
-
-from .embedded import connected
-from .secure import Invocation, SecureRunner
+from snail_common.pnp.spec import Spec
 
 
 def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 
 from snail_common.circuit.schedule import schedule_circuit
-from snail_common.loc.circuits import Spec, build
+from snail_common.pnp.spec import Spec, build
 
 
 def circuit_report(spec: Spec) -> dict:

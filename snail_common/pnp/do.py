@@ -149,7 +149,7 @@ def normal_equations64(R: np.ndarray, t: np.ndarray, image: np.ndarray, world: n
     return hess, grad, float((w * err**2).sum())
 
 
-def _pinv_solve64(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def pinv_solve64(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     u, s, vt = np.linalg.svd(a)
     inv = np.where(s > REL_TOL * s.max(), 1.0 / np.where(s > 0, s, 1.0), 0.0)
     return vt.T @ (inv * (u.T @ b))
@@ -162,7 +162,7 @@ def do_reference(values: dict[str, np.ndarray], solver: str,
     {"R", "t", "lam", "cost"}."""
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
-    solve = np.linalg.solve if solver == "ldlt" else _pinv_solve64
+    solve = np.linalg.solve if solver == "ldlt" else pinv_solve64
     data = (values["image"], values["world"], values["weights"])
     R, t = np.asarray(values["R"], np.float64), np.asarray(values["t"], np.float64)
     lam = float(values["lam"])

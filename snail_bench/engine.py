@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from snail_common.circuit import CircuitBuilder, run_schedule, schedule_circuit
+from snail_common.circuit.plan import plan_for
 from snail_common.circuit.schedule import Schedule
 from snail_common.circuit.values import pack_lanes, unpack_lanes
 from snail_common.gc import (
@@ -36,7 +37,6 @@ from snail_common.gc import (
     fresh_seed,
 )
 from snail_common.gc.aes import AesBatch, byte_view
-from snail_common.gc.plan import plan_for
 
 WIDE_LANES = 1 << 15  # AND steps of 32 Ki and 64 Ki gates
 WIDE_LAYERS = 192  # 6.3 M AND gates

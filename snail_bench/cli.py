@@ -8,6 +8,7 @@ import sys
 import click
 import numpy as np
 
+from snail_common import families
 from snail_common.circuit import evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import BristolError, load_bristol
 
@@ -33,6 +34,7 @@ def _emit(report: dict, as_json: bool) -> None:
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """Benchmarks and gate counts of snail's circuits and engines."""
+    families.register_all()
 
 
 @main.command()
@@ -118,7 +120,7 @@ def ops(as_json: bool) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def circuit(algorithm: str, mode: str, points: int, solver: str, as_json: bool) -> None:
     """AND/XOR gates, AND-depth, schedule steps and build time of a localization circuit."""
-    from snail_common.loc.circuits import Spec
+    from snail_common.pnp.spec import Spec
 
     from .circuit import circuit_report
 
@@ -162,9 +164,10 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
             as_json: bool) -> None:
     """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
     per link, and the servers' peak memory. Circuits are compiled on first use."""
-    from snail_client.bench import service_report
     from snail_client.embedded import check_addresses
-    from snail_common.loc.circuits import Spec
+    from snail_common.pnp.spec import Spec
+
+    from .service import service_report
 
     try:
         check_addresses(garbler, evaluator, tls_dir)

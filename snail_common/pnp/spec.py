@@ -1,8 +1,7 @@
-"""Localization circuits by name: build, cache, and run them (cleartext or mirror).
+"""Localization circuits by name: what each computes (``Spec``), its netlist, its mirror.
 
 A circuit id names everything that shapes the circuit, e.g. ``lm-sil-ldlt-n6``; the
-registry prefixes it with ``loc/``. The cache keys files by a digest of the program's
-source (circuit.cache.code_digest), so changing the program invalidates cached circuits.
+registry knows it as ``loc/lm-sil-ldlt-n6`` (family.py registers the family).
 """
 
 from __future__ import annotations
@@ -71,10 +70,6 @@ class Spec:
     def registry_id(self) -> str:
         """The id servers know it by (``snail_common.circuit.registry``)."""
         return f"loc/{self.circuit_id}"
-
-    @property
-    def cache_name(self) -> str:
-        return f"loc-{self.circuit_id}"
 
     @classmethod
     def parse(cls, circuit_id: str) -> Spec:

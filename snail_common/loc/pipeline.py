@@ -1,0 +1,137 @@
+"""The one localization pipeline: a problem and a starting pose in, a refined pose out.
+
+Every way of localizing runs through ``localize``: the client's ``localize`` and
+``track`` commands (garbled or cleartext), the float64 reference, the mirror used for
+accuracy sweeps. It preprocesses in the clear (undistort, normalize, pad), picks the
+circuit, runs the iteration driver (SIL) or one data-oblivious invocation (DO) on a
+backend, and maps the pose back to the problem's frame.
+
+Privacy policy: the servers see how many invocations a frame makes, so a SIL frame makes
+at least ``min_invocations``, padded with dummy runs (``Backend.pad``) when the driver
+stops early. A DO frame is always one invocation, whatever the data.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from snail_common.pnp.spec import DO_ITERATIONS, DO_MAX_ITERATIONS, Spec
+
+from .backends import Backend, sil_values
+from .driver import COST_TOL, LAMBDA_START, run
+from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
+from .preprocess import normalize, pad
+from .problem import PoseVectors, Problem, check_in_front
+from .reference import reprojection_rms
+from .types import IterationResult, Normalized, Pose
+
+MODES = ("sil", "do")
+
+
+@dataclass(frozen=True)
+class Options:
+    """How to localize (the command line's choices; defaults are the product's)."""
+
+    algorithm: str = "lm"
+    mode: str = "sil"
+    solver: str = "ldlt"
+    max_iterations: int = 20
+    min_invocations: int = 20
+    pad_points: int = 0  # round n up to a multiple of this (0: no padding)
+    do_iterations: int = DO_ITERATIONS
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 1:
+            raise ValueError("--max-iterations: must be at least 1")
+        if self.min_invocations < 0 or self.pad_points < 0:
+            raise ValueError("--min-invocations/--pad-points: must not be negative")
+        if self.mode not in MODES:
+            raise ValueError(f"--mode: expected sil or do, got {self.mode!r}")
+        if self.mode == "do" and self.algorithm != "lm":
+            raise ValueError("--mode do: the data-oblivious baseline is LM only "
+                             "(use --algorithm lm)")
+        if not 1 <= self.do_iterations <= DO_MAX_ITERATIONS:
+            raise ValueError(f"--do-iterations: must be in 1..{DO_MAX_ITERATIONS}")
+
+    def circuit_points(self, n: int) -> int:
+        if self.pad_points <= 1:
+            return n
+        return -(-n // self.pad_points) * self.pad_points
+
+    def spec(self, n: int) -> Spec:
+        """The circuit a problem of ``n`` points runs on."""
+        iterations = self.do_iterations if self.mode == "do" else DO_ITERATIONS
+        return Spec(self.algorithm, self.mode, self.solver, self.circuit_points(n), iterations)
+
+
+@dataclass(frozen=True)
+class Localized:
+    """A localized frame, in the problem's world frame."""
+
+    rvec: np.ndarray
+    tvec: np.ndarray
+    cost: float
+    rms_px: float
+    iterations: int  # real LM/GN steps (the DO circuit's fixed count in mode do)
+    invocations: int  # backend runs, padding included
+    converged: bool
+    walls: list[float]  # wall seconds of each timed (non-padding) invocation
+    spec: Spec
+    total_s: float
+
+
+def localize(problem: Problem, options: Options, backend: Backend,
+             initial: PoseVectors | None = None) -> Localized:
+    """Refine the pose of ``problem`` from ``initial`` (default: the file's initial pose)
+    on ``backend``."""
+    start = time.perf_counter()
+    pose_vectors = initial or problem.initial_pose
+    if pose_vectors is None:
+        raise ValueError("initial_pose: required for the first frame")
+    check_in_front(problem, pose_vectors)
+    nrm, frame = normalize(problem)
+    spec = options.spec(problem.n)
+    nrm = pad(nrm, spec.points) if spec.points != nrm.n else nrm
+    backend.prepare(spec)  # build or load now, not inside the first timed call
+    first = backend.invocations
+    pose0 = frame.to_normalized(pose_from_rvec_tvec(pose_vectors.rvec, pose_vectors.tvec))
+    solve = _solve_do if options.mode == "do" else _solve_sil
+    pose, cost, iterations, converged, walls = solve(spec, options, backend, nrm, pose0)
+    if options.mode == "sil":
+        backend.pad(spec, first + options.min_invocations)
+    rvec, tvec = pose_to_rvec_tvec(frame.to_original(pose))
+    return Localized(rvec, tvec, cost, reprojection_rms(problem, rvec, tvec), iterations,
+                     backend.invocations - first, converged, walls, spec,
+                     time.perf_counter() - start)
+
+
+def _solve_sil(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
+               pose0: Pose) -> tuple[Pose, float, int, bool, list[float]]:
+    """The LM/GN driver, one SIL invocation per call."""
+
+    def iteration(problem: Normalized, pose: Pose, lam: float) -> IterationResult:
+        out = backend.run(spec, sil_values(spec, problem, pose, lam))
+        return IterationResult(step=np.asarray(out["step"], np.float64),
+                               cost=float(out["cost"]))
+
+    result = run(options.algorithm, nrm, pose0, iteration, options.max_iterations)
+    return (result.pose, float(result.cost), result.iterations, result.converged,
+            [call.wall_s for call in result.history])
+
+
+def _solve_do(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
+              pose0: Pose) -> tuple[Pose, float, int, bool, list[float]]:
+    """One run of the data-oblivious circuit from pose0; converged when its last
+    iteration changed the cost by at most the driver's tolerance."""
+    values = sil_values(spec, nrm, pose0, LAMBDA_START)
+    start = time.perf_counter()
+    out = backend.run(spec, values)
+    wall = time.perf_counter() - start
+    cost, previous = float(out["cost"]), float(out["previous_cost"])
+    converged = math.isfinite(cost) and previous - cost <= COST_TOL * previous
+    pose = Pose(np.asarray(out["R"], np.float64), np.asarray(out["t"], np.float64))
+    return pose, cost, spec.iterations, converged, [wall]
