@@ -17,12 +17,13 @@ from ``schedule_circuit`` never write a slot a step reads; older ones may.
 
 from __future__ import annotations
 
+from itertools import pairwise
 from typing import NamedTuple
 
 import numpy as np
 
 from .memo import per_object
-from .runs import find_runs, run_slice
+from .runs import MIN_RUN, find_runs, run_slice
 from .schedule import AndStep, LinearStep, Schedule
 from .slots import Rows, as_rows, gather, length, part, slot_view, write
 
@@ -158,13 +159,17 @@ class Plan(NamedTuple):
 
 class _ReadRows:
     """Where a step reads the slots it writes (one reusable per-slot array per build; a
-    range of outputs is checked with comparisons instead)."""
+    range of outputs is checked with comparisons instead). A schedule that promises
+    ``disjoint_io`` is taken at its word."""
 
-    def __init__(self, n_slots: int) -> None:
-        self._last = np.full(n_slots, -1, np.int32)  # last row of the step reading a slot
+    def __init__(self, n_slots: int, disjoint_io: bool = False) -> None:
+        self._known = disjoint_io
+        self._last = np.full(0 if disjoint_io else n_slots, -1, np.int32)
 
     def disjoint(self, out: np.ndarray, reads: np.ndarray) -> bool:
         """No slot of ``out`` is in ``reads``."""
+        if self._known:
+            return True
         rows = as_rows(out)
         if isinstance(rows, slice) and rows.step == 1:
             return not bool(((reads >= rows.start) & (reads < rows.stop)).any())
@@ -177,6 +182,8 @@ class _ReadRows:
         """Every slot out[i] is read, if at all, only by rows <= i: block by block writes
         cannot clobber a later block's operands, whatever the block size (an executor reads
         a whole block before writing it)."""
+        if self._known:
+            return True
         rows = np.arange(len(out), dtype=np.int32)
         span = as_rows(out)
         if isinstance(span, slice) and span.step == 1:  # out[i] = start + i
@@ -191,9 +198,16 @@ class _ReadRows:
         return ok
 
 
+# A separate piece costs a kernel call: ~3 numpy calls for a bitwise AND or an XOR group,
+# ~25 for a garbling kernel; a gathered row costs a few ns. So single-word rows (cleartext)
+# take runs from MIN_RUN rows on, labels only long ones (measured on the SIL circuits).
+LABEL_MIN_RUN = {"and": 4096, "linear": 512}
+
+
 def _build(schedule: Schedule, strided: bool) -> Plan:
     """The plan of ``schedule`` (strided runs or only adjacent ones, see slots.py)."""
-    reads = _ReadRows(schedule.n_slots)
+    min_run = ({"and": MIN_RUN, "linear": MIN_RUN} if strided else LABEL_MIN_RUN)
+    reads = _ReadRows(schedule.n_slots, schedule.disjoint_io)
     steps: list[AndPlan | LinearPlan] = []
     gates = 0  # AND rows so far: the next piece's first gate number (its tweak base)
     for i, step in enumerate(schedule.steps()):
@@ -201,24 +215,25 @@ def _build(schedule: Schedule, strided: bool) -> Plan:
             if int(schedule.step_lo[i]) != gates:
                 raise ValueError(f"AND step {i} starts at row {schedule.step_lo[i]}, not "
                                  f"{gates}: gate numbers (hash tweaks) would repeat")
-            steps.extend(_and_pieces(step, gates, reads, strided))
+            steps.extend(_and_pieces(step, gates, reads, strided, min_run["and"]))
             gates += len(step.out)
         else:
-            steps.append(_linear(step, reads.disjoint(step.out, step.terms), strided))
+            steps.append(_linear(step, reads.disjoint(step.out, step.terms), strided,
+                                 min_run["linear"]))
     if gates != schedule.n_and:
         raise ValueError(f"AND steps cover {gates} of {schedule.n_and} AND rows")
     widest = max((p.n for p in steps if isinstance(p, AndPlan)), default=0)
     return Plan(tuple(steps), widest)
 
 
-def _and_pieces(step: AndStep, first: int, reads: _ReadRows,
-                strided: bool) -> list[AndPlan]:
+def _and_pieces(step: AndStep, first: int, reads: _ReadRows, strided: bool,
+                min_run: int) -> list[AndPlan]:
     """An AND step as its runs, then its leftover rows (numbered in that order). A step
     whose writes may clobber its own reads stays one piece in schedule order."""
     out, a, b = step.out, step.a, step.b
     if not reads.reads_precede_writes(out, a, b):
         return [AndPlan(as_rows(out), as_rows(a), as_rows(b), first, len(out), False)]
-    runs, rest = find_runs(out, [a, b], strided)
+    runs, rest = find_runs(out, [a, b], strided, min_run)
     columns = [tuple(run_slice(c, r0, r1) for c in (out, a, b)) for r0, r1 in runs]
     if rest.size:
         columns.append(tuple(as_rows(c[rest], strided) for c in (out, a, b)))
@@ -235,29 +250,36 @@ def _and_pieces(step: AndStep, first: int, reads: _ReadRows,
 DENSE_MIN_TERMS_PER_COLUMN = 512
 
 
-def _linear(step: LinearStep, direct: bool, strided: bool) -> LinearPlan:
+def _linear(step: LinearStep, direct: bool, strided: bool, min_run: int) -> LinearPlan:
     """A linear step as runs of each term count, then its leftover rows: dense groups per
-    term count, or one ragged group when they are few."""
+    term count, or one ragged group when they are few. The scheduler sorts a step's rows
+    by term count, so each count is one range of rows and its terms one dense block."""
     t = step.terms
     if not step.out.size:
         return LinearPlan((), direct)
     counts = np.diff(np.append(step.starts, len(t)))
     if np.any(counts == 0):
         raise ValueError("a linear step output has no terms")
+    bounds = [0, *(np.flatnonzero(counts[1:] != counts[:-1]) + 1).tolist(), len(counts)]
+    if len(bounds) > 2 and len(t) < DENSE_MIN_TERMS_PER_COLUMN * len(np.unique(counts)):
+        return LinearPlan((RaggedGroup(as_rows(step.out, strided), t.astype(np.intp),
+                                       step.starts.astype(np.intp)),), direct)
     groups: list[RunGroup | LinearGroup | RaggedGroup] = []
     left: list[tuple[np.ndarray, list[np.ndarray]]] = []  # (out, term columns)
-    order = np.argsort(counts, kind="stable")
-    for c in np.flatnonzero(np.bincount(counts)).tolist():
-        rows = order[counts[order] == c]
-        out, cols = step.out[rows], [t[step.starts[rows] + k] for k in range(c)]
-        runs, rest = find_runs(out, cols, strided)
-        for r0, r1 in runs:
-            groups.append(RunGroup(run_slice(out, r0, r1),
-                                   tuple(run_slice(col, r0, r1) for col in cols)))
-        if rest.size:
+    for r0, r1 in pairwise(bounds):
+        k, t0 = int(counts[r0]), int(step.starts[r0])
+        block = t[t0 : t0 + (r1 - r0) * k].reshape(r1 - r0, k)
+        out, cols = step.out[r0:r1], [block[:, j] for j in range(k)]
+        runs, rest = find_runs(out, cols, strided, min_run)
+        for a, b in runs:
+            groups.append(RunGroup(run_slice(out, a, b),
+                                   tuple(run_slice(col, a, b) for col in cols)))
+        if len(rest) == len(out):
+            left.append((out, cols))
+        elif rest.size:
             left.append((out[rest], [col[rest] for col in cols]))
     n_terms = sum(len(o) * len(cols) for o, cols in left)
-    if left and n_terms < DENSE_MIN_TERMS_PER_COLUMN * sum(len(cols) for _, cols in left):
+    if len(left) > 1 and n_terms < DENSE_MIN_TERMS_PER_COLUMN * sum(len(c) for _, c in left):
         groups.append(_ragged(left))
     else:
         groups.extend(LinearGroup(as_rows(o, strided),

@@ -15,34 +15,40 @@ import numpy as np
 MIN_RUN = 128  # shorter runs cost more in numpy calls than their gathers do
 
 
-def find_runs(out: np.ndarray, operands: list[np.ndarray], strided: bool
-              ) -> tuple[list[tuple[int, int]], np.ndarray]:
-    """Row ranges [r0, r1) of runs (see the module docstring), and the rows outside them.
-    Without ``strided``, only runs where every column advances by exactly one slot."""
+def find_runs(out: np.ndarray, operands: list[np.ndarray], strided: bool,
+              min_run: int = MIN_RUN) -> tuple[list[tuple[int, int]], np.ndarray]:
+    """Row ranges [r0, r1) of runs of at least ``min_run`` rows (see the module
+    docstring), and the rows outside them. Without ``strided``, only runs where every
+    column advances by exactly one slot."""
     n = len(out)
-    covered = np.zeros(n, bool)
-    runs: list[tuple[int, int]] = []
-    if n >= MIN_RUN:
-        cols = [out, *operands]
-        same = np.ones(n, bool)  # same[r]: row r continues the stride of rows r-2, r-1
-        same[:2] = False
-        for c in cols:
-            step = np.diff(c)
-            same[2:] &= step[1:] == step[:-1]
-        edge = np.flatnonzero(same[1:] != same[:-1])  # alternating starts and ends
-        if same[-1]:
-            edge = np.append(edge, n - 1)
-        first, last = edge[0::2] - 1, edge[1::2] + 1  # rows first .. last-1 are affine
-        last[:-1] = np.minimum(last[:-1], first[1:])  # neighbours share at most one row
-        for r0, r1 in zip(first.tolist(), last.tolist()):
-            strides = [_stride(c, r0) for c in cols]
-            if r1 - r0 < MIN_RUN or strides[0] < 1 or min(strides[1:]) < 0:
-                continue
-            if not strided and any(s != 1 for s in strides):
-                continue
-            covered[r0:r1] = True
-            runs.append((r0, r1))
-    return runs, np.flatnonzero(~covered)
+    if n < max(min_run, 3):
+        return [], np.arange(n)
+    cols = [out, *operands]
+    same = np.ones(n, bool)  # same[r]: row r continues the stride of rows r-2, r-1
+    same[:2] = False
+    for c in cols:
+        step = np.diff(c)
+        same[2:] &= step[1:] == step[:-1]
+    edge = np.flatnonzero(same[1:] != same[:-1])  # alternating starts and ends
+    if same[-1]:
+        edge = np.append(edge, n - 1)
+    first, last = edge[0::2] - 1, edge[1::2] + 1  # rows first .. last-1 are affine
+    last[:-1] = np.minimum(last[:-1], first[1:])  # neighbours share at most one row
+    keep = last - first >= min_run
+    first, last = first[keep], last[keep]
+    strides = [c[first + 1].astype(np.int64) - c[first] for c in cols]
+    keep = strides[0] >= 1
+    for s in strides[1:]:
+        keep &= s >= 0
+    if not strided:
+        for s in strides:
+            keep &= s == 1
+    first, last = first[keep], last[keep]
+    covered = np.zeros(n + 1, np.int32)
+    np.add.at(covered, first, 1)
+    np.add.at(covered, last, -1)
+    rest = np.flatnonzero(np.cumsum(covered[:n]) == 0)
+    return list(zip(first.tolist(), last.tolist())), rest
 
 
 def _stride(column: np.ndarray, r0: int) -> int:
