@@ -15,7 +15,6 @@ from snail_common.circuit.layout import allocate_slots, order_rows
 from snail_common.circuit.plan import (
     AndPlan,
     LinearGroup,
-    RaggedGroup,
     RunGroup,
     plan_for,
 )
@@ -183,12 +182,12 @@ def test_wide_circuit_runs_entirely_on_strided_views():
     assert np.array_equal(one_lane, out[:64])  # single-word rows: the strided plan
 
 
-@pytest.mark.parametrize(("n", "leftover"), [(MIN_RUN, RaggedGroup), (2048, LinearGroup)])
-def test_step_writing_its_own_reads_is_evaluated_before_writing(n, leftover):
+@pytest.mark.parametrize("n", [MIN_RUN, 2048])
+def test_step_writing_its_own_reads_is_evaluated_before_writing(n):
     """An older schedule may let a step's outputs reuse slots the same step reads: the 2-term
     group overwrites x3's slot before the 3-term group reads it unless the step computes
     everything first. The 2-term rows form a run, the scrambled 3-term rows are left to
-    gathers (a ragged group while they are few)."""
+    gathers."""
     x = [FIRST_INPUT + k * n + np.arange(n) for k in range(4)]  # four input groups
     n_inputs = 4 * n
     fresh = FIRST_INPUT + n_inputs + np.arange(n)
@@ -207,7 +206,7 @@ def test_step_writing_its_own_reads_is_evaluated_before_writing(n, leftover):
     assert not sched.disjoint_io
     plan = plan_for(sched, strided=True)
     assert not plan.steps[0].direct
-    assert {type(g) for g in plan.steps[0].groups} == {RunGroup, leftover}
+    assert {type(g) for g in plan.steps[0].groups} == {RunGroup, LinearGroup}
     words = np.random.default_rng(1).integers(0, 2**63, (n_inputs, 1), dtype=np.uint64)
     v = {int(w): words[w - FIRST_INPUT] for w in np.concatenate(x)}
     want = [v[a] ^ v[b] for a, b in zip(x[0], x[1])]

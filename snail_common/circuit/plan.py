@@ -261,7 +261,8 @@ def _linear(step: LinearStep, direct: bool, strided: bool, min_run: int) -> Line
     if np.any(counts == 0):
         raise ValueError("a linear step output has no terms")
     bounds = [0, *(np.flatnonzero(counts[1:] != counts[:-1]) + 1).tolist(), len(counts)]
-    if len(bounds) > 2 and len(t) < DENSE_MIN_TERMS_PER_COLUMN * len(np.unique(counts)):
+    if (len(bounds) > 2 and len(counts) < min_run
+            and len(t) < DENSE_MIN_TERMS_PER_COLUMN * len(np.unique(counts))):
         return LinearPlan((RaggedGroup(as_rows(step.out, strided), t.astype(np.intp),
                                        step.starts.astype(np.intp)),), direct)
     groups: list[RunGroup | LinearGroup | RaggedGroup] = []
