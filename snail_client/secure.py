@@ -1,15 +1,22 @@
 """The client's side of a secure invocation: one garbled run of a circuit on private bits.
 
 The client keeps one TLS connection to each server for its whole lifetime (handshakes
-per invocation would cost more than small circuits). Per invocation it draws a fresh
-session id, label seed, offset delta and hash key from the OS CSPRNG and
+per invocation would cost more than small circuits). A session is *prepared* before its
+inputs exist, since garbling does not depend on them: the client draws a fresh session
+id, label seed, offset delta and hash key from the OS CSPRNG,
+- sends the garbler ``garble_request`` {sid, circuit, hash, seed, delta, key}: it garbles
+  and streams the tables to the evaluator (which holds them) and returns the output
+  zero-labels;
+- sends the evaluator ``session_start`` {sid, circuit, hash}.
+Invoking it then costs one round trip to the evaluator: the client sends its active
+input labels ``L0(w) ^ bit(w) * delta`` (derived from the seed, so no oblivious transfer
+is needed), the evaluator evaluates and returns the active output labels, and the client
+decodes: a label that is neither L0 nor L0 ^ delta means tampering (ServiceError).
 
-- sends the garbler ``garble_request`` {sid, circuit, hash, seed, delta, key};
-- sends the evaluator ``session_start`` {sid, circuit, hash} and its active input labels
-  ``L0(w) ^ bit(w) * delta`` (derived from the seed, so no oblivious transfer is needed);
-- collects the evaluator's active output labels and the garbler's output zero-labels,
-  each followed by a ``stats`` message, and decodes: a label that is neither L0 nor
-  L0 ^ delta means tampering and raises ServiceError.
+A caller that knows how many invocations of a circuit are coming (``expect``: a padded
+frame makes at least ``--min-invocations``) lets the runner keep up to ``ahead``
+sessions prepared, so the next one is garbled while the current one is evaluated. A
+prepared session is used once or cancelled (at ``close``), never reused.
 
 Both connections are multiplexed by sid, so invocations may run concurrently. Any
 failure (an ``error`` from a server, a lost connection, the timeout) raises ServiceError
@@ -23,6 +30,7 @@ import asyncio
 import contextlib
 import secrets
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,6 +39,7 @@ import numpy as np
 
 from snail_common import families
 from snail_common.circuit import registry
+from snail_common.circuit.ir import Interface
 from snail_common.gc import (
     IntegrityError,
     active_input_labels,
@@ -39,27 +48,50 @@ from snail_common.gc import (
     labels_to_bytes,
 )
 from snail_common.net import messages, tls
-from snail_common.net.chunks import LabelAssembler, write_labels
-from snail_common.net.conn import Connection, connect, format_addr, new_event_loop, parse_addr
-from snail_common.net.errors import UNEXPECTED, ConnectionClosed, ProtocolError, RemoteError
+from snail_common.net.chunks import write_labels
+from snail_common.net.conn import connect, new_event_loop, parse_addr
+from snail_common.net.errors import ConnectionClosed, ProtocolError, RemoteError
+
+from .links import Inbox, Link, ServiceError, labels_and_stats
 
 LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
          "evaluator_to_client", "garbler_to_client")
 DEFAULT_TIMEOUT = 300.0
-
-
-class ServiceError(Exception):
-    """A secure invocation failed (network, server error, timeout or integrity)."""
+DEFAULT_AHEAD = 1  # sessions garbled ahead of need, when the caller says more are coming
 
 
 @dataclass
 class Invocation:
-    """One secure run: decoded outputs, bytes per link, wall time, server timings."""
+    """One secure run: decoded outputs, bytes per link, wall time, server timings, and
+    how many table bytes reached the evaluator before this run's inputs (garble-ahead)."""
 
     outputs: np.ndarray
     traffic: dict[str, int]
     wall_s: float
     timing: dict[str, float] = field(default_factory=dict)
+    garbled_ahead: int = 0
+
+
+@dataclass(eq=False)
+class _Prepared:
+    """A session whose garbling was requested: its secrets and both servers' inboxes."""
+
+    circuit_id: str
+    iface: Interface
+    sid: bytes
+    seed: bytes
+    delta: np.ndarray
+    garbler: Link
+    evaluator: Link
+    to_g: Inbox
+    to_e: Inbox
+    sent_g: int
+    sent_e: int
+
+    @property
+    def usable(self) -> bool:
+        return (self.garbler.alive and self.evaluator.alive
+                and not self.to_g.failed and not self.to_e.failed)
 
 
 Address = str | tuple[str, int]
@@ -74,79 +106,29 @@ def _addr(value: Address, name: str) -> tuple[str, int]:
         raise ValueError(f"{name}: {exc}") from None
 
 
-class _Link:
-    """One server connection, its frames dispatched to waiting invocations by sid."""
-
-    def __init__(self, conn: Connection) -> None:
-        self.conn = conn
-        self.role = conn.peer_role
-        self.waiting: dict[bytes, asyncio.Queue] = {}
-        self.health: asyncio.Future | None = None
-        self.failure: Exception | None = None
-        self._task = asyncio.get_running_loop().create_task(self._dispatch())
-
-    @property
-    def alive(self) -> bool:
-        return self.failure is None and not self.conn.ended
-
-    async def _dispatch(self) -> None:
-        try:
-            while True:
-                msg, size = await self.conn.recv()
-                sid = msg.get("sid")
-                if sid is not None:
-                    queue = self.waiting.get(sid)
-                    if queue is not None:  # else: a session already given up
-                        queue.put_nowait((msg, size))
-                elif msg["t"] == "health" and self.health and not self.health.done():
-                    self.health.set_result(msg)
-                elif msg["t"] == "error":
-                    raise RemoteError(msg["code"], msg["message"])
-                elif msg["t"] == "bye":
-                    raise ConnectionClosed(f"the {self.role} is shutting down")
-                else:
-                    raise ProtocolError(UNEXPECTED, f"the {self.role} sent {msg['t']}")
-        except (ConnectionClosed, ProtocolError, RemoteError) as exc:
-            self._broken(exc)
-
-    def _broken(self, exc: Exception) -> None:
-        self.failure = exc
-        for queue in self.waiting.values():
-            queue.put_nowait((exc, 0))
-        if self.health and not self.health.done():
-            self.health.set_exception(exc)
-        self.conn.abort()
-
-    def open(self, sid: bytes) -> asyncio.Queue:
-        queue: asyncio.Queue = asyncio.Queue()
-        self.waiting[sid] = queue
-        return queue
-
-    async def close(self) -> None:
-        self._task.cancel()
-        await asyncio.gather(self._task, return_exceptions=True)
-        await self.conn.close(messages.make("bye"))
-
-
 class AsyncSecureRunner:
     """Runs circuits securely on a garbler and an evaluator (asyncio API)."""
 
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
-                 connect_timeout: float = 10.0) -> None:
+                 connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD) -> None:
         families.register_all()
         self.garbler_addr = _addr(garbler_addr, "garbler address")
         self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
         self.ctx = tls.client_context(tls_dir, "client")
         self.timeout = timeout
         self.connect_timeout = connect_timeout
+        self.ahead = ahead
         self.last: Invocation | None = None
         self.totals = dict.fromkeys(LINKS, 0)
         self.invocations = 0
-        self._links: dict[str, _Link] = {}
+        self._links: dict[str, Link] = {}
         self._lock = asyncio.Lock()
+        self._prepared: dict[str, deque[_Prepared]] = {}
+        self._expected: dict[str, int] = {}
+        self._filling: set[asyncio.Task] = set()
 
-    async def _link(self, role: str) -> _Link:
+    async def _link(self, role: str) -> Link:
         async with self._lock:
             link = self._links.get(role)
             if link is None or not link.alive:
@@ -156,10 +138,10 @@ class AsyncSecureRunner:
                                          self.connect_timeout)
                 except ConnectionClosed as exc:
                     raise ServiceError(str(exc)) from None
-                link = self._links[role] = _Link(conn)
+                link = self._links[role] = Link(conn)
             return link
 
-    async def connect(self) -> tuple[_Link, _Link]:
+    async def connect(self) -> tuple[Link, Link]:
         """Open both connections now (otherwise the first run does)."""
         links = await asyncio.gather(self._link("garbler"), self._link("evaluator"),
                                      return_exceptions=True)  # both settle, no orphan task
@@ -168,76 +150,134 @@ class AsyncSecureRunner:
                 raise link
         return links[0], links[1]
 
+    def expect(self, circuit_id: str, count: int) -> None:
+        """At least ``count`` invocations of ``circuit_id`` are coming: keep up to
+        ``ahead`` of them prepared (garbled) before they are needed."""
+        self._expected[circuit_id] = max(count, 0)
+        self._fill(circuit_id)
+
     async def run(self, circuit_id: str, input_bits: np.ndarray) -> np.ndarray:
         """Decoded output bits of one secure run; details in ``self.last``."""
         return (await self.invoke(circuit_id, input_bits)).outputs
 
     async def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
         """One secure run of ``circuit_id`` on ``input_bits`` (bool, one per input wire)."""
-        loop = asyncio.get_running_loop()
-        try:
-            iface = await loop.run_in_executor(None, registry.interface, circuit_id)
-        except registry.UnknownCircuit as exc:
-            raise ServiceError(str(exc)) from None
+        t0 = time.perf_counter()
+        session = (self._take(circuit_id) or await self._in_flight(circuit_id)
+                   or await self._prepare(circuit_id))
+        iface, sid = session.iface, session.sid
         bits = np.asarray(input_bits)
         if bits.dtype != np.bool_ or bits.shape != (iface.n_inputs,):
+            self._cancel(session)
             raise ValueError(f"input_bits must be a bool vector of {iface.n_inputs} bits "
                              f"for {circuit_id}, got {bits.dtype} {bits.shape}")
-        garbler, evaluator = await self.connect()
-        t0 = time.perf_counter()
-        sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
-        delta = fresh_delta()
-        labels = active_input_labels(seed, delta, bits)
-        n_out, chash = iface.n_outputs, iface.content_hash
-        to_g, to_e = garbler.open(sid), evaluator.open(sid)
-
-        async def exchange() -> tuple[int, int, list]:
-            sent_e = evaluator.conn.write(messages.make(
-                "session_start", sid=sid, circuit=circuit_id, hash=chash))
-            sent_e += write_labels(evaluator.conn, "input_labels", sid, labels)
-            sent_g = garbler.conn.write(messages.make(
-                "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
-                delta=labels_to_bytes(delta), key=key))
-            await asyncio.gather(evaluator.conn.drain(), garbler.conn.drain())
-            results = await self._collect((garbler, to_g, "output_zero_labels"),
-                                          (evaluator, to_e, "output_labels"), n_out)
-            return sent_g, sent_e, results
-
+        self._expected[circuit_id] = max(self._expected.get(circuit_id, 0) - 1, 0)
+        labels = active_input_labels(session.seed, session.delta, bits)
         try:
-            sent_g, sent_e, results = await asyncio.wait_for(exchange(), self.timeout)
+            sent_e = write_labels(session.evaluator.conn, "input_labels", sid, labels)
+            self._fill(circuit_id)  # the next sessions garble while this one evaluates
+            await session.evaluator.conn.drain()
+            results = await asyncio.wait_for(self._collect(session), self.timeout)
         except asyncio.TimeoutError:
-            self._cancel(sid, garbler, evaluator)
+            self._cancel(session)
             raise ServiceError(f"{circuit_id}: no result within {self.timeout:g} s") \
                 from None
         except (ServiceError, ConnectionClosed) as exc:
-            self._cancel(sid, garbler, evaluator)
+            self._cancel(session)
             raise ServiceError(f"{circuit_id}: {exc}") from None
         finally:
-            garbler.waiting.pop(sid, None)
-            evaluator.waiting.pop(sid, None)
+            session.garbler.waiting.pop(sid, None)
+            session.evaluator.waiting.pop(sid, None)
         (zero, g_in, g_stats), (active, e_in, e_stats) = results
         wall = time.perf_counter() - t0
         try:
-            outputs = decode_output_labels(delta, zero, active)
+            outputs = decode_output_labels(session.delta, zero, active)
         except IntegrityError as exc:
             raise ServiceError(f"{circuit_id}: integrity check failed, the result was "
                                f"tampered with: {exc}") from None
-        traffic = {"client_to_garbler": sent_g, "client_to_evaluator": sent_e,
+        traffic = {"client_to_garbler": session.sent_g,
+                   "client_to_evaluator": session.sent_e + sent_e,
                    "garbler_to_evaluator": int(g_stats["traffic"]["garbler_to_evaluator"]),
                    "evaluator_to_client": e_in, "garbler_to_client": g_in}
         timing = {f"garbler_{k}": v for k, v in g_stats["timing"].items()}
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
-        self.last = Invocation(outputs, traffic, wall, timing)
+        ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
+        self.last = Invocation(outputs, traffic, wall, timing, ahead)
         self.invocations += 1
         for k, v in traffic.items():
             self.totals[k] += v
         return self.last
 
-    async def _collect(self, *args: Any) -> list[tuple[np.ndarray, int, dict[str, Any]]]:
+    async def _prepare(self, circuit_id: str) -> _Prepared:
+        """Ask for a session's garbling now, with fresh secrets."""
+        loop = asyncio.get_running_loop()
+        try:
+            iface = await loop.run_in_executor(None, registry.interface, circuit_id)
+        except registry.UnknownCircuit as exc:
+            raise ServiceError(str(exc)) from None
+        garbler, evaluator = await self.connect()
+        sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
+        delta = fresh_delta()
+        to_g, to_e = garbler.open(sid), evaluator.open(sid)
+        chash = iface.content_hash
+        try:
+            sent_e = evaluator.conn.write(messages.make(
+                "session_start", sid=sid, circuit=circuit_id, hash=chash))
+            sent_g = garbler.conn.write(messages.make(
+                "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
+                delta=labels_to_bytes(delta), key=key))
+            await asyncio.gather(evaluator.conn.drain(), garbler.conn.drain())
+        except ConnectionClosed as exc:
+            garbler.cancel(sid)
+            evaluator.cancel(sid)
+            raise ServiceError(f"{circuit_id}: {exc}") from None
+        return _Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
+                         sent_g, sent_e)
+
+    def _take(self, circuit_id: str) -> _Prepared | None:
+        """A prepared session of ``circuit_id`` the servers still hold, if any."""
+        queue = self._prepared.get(circuit_id)
+        while queue:
+            session = queue.popleft()
+            if session.usable:
+                return session
+            self._cancel(session)  # expired or its link broke: garble anew
+        return None
+
+    async def _in_flight(self, circuit_id: str) -> _Prepared | None:
+        """Wait for a session of ``circuit_id`` already being prepared, rather than ask
+        the garbler for yet another one (it would garble it behind those)."""
+        tasks = [t for t in self._filling if t.get_name() == circuit_id]
+        if not tasks:
+            return None
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        return self._take(circuit_id)
+
+    def _fill(self, circuit_id: str) -> None:
+        """Prepare sessions in the background up to min(ahead, expected invocations)."""
+        queue = self._prepared.setdefault(circuit_id, deque())
+        want = min(self.ahead, self._expected.get(circuit_id, 0))
+        for _ in range(want - len(queue) - sum(1 for t in self._filling
+                                               if t.get_name() == circuit_id)):
+            task = asyncio.get_running_loop().create_task(self._prepare(circuit_id),
+                                                          name=circuit_id)
+            self._filling.add(task)
+            task.add_done_callback(self._prepared_one)
+
+    def _prepared_one(self, task: asyncio.Task) -> None:
+        self._filling.discard(task)
+        if not task.cancelled() and task.exception() is None:
+            self._prepared.setdefault(task.get_name(), deque()).append(task.result())
+        # a failed preparation is not an error yet: the invocation that needs one
+        # prepares again and reports what breaks
+
+    async def _collect(self, session: _Prepared) -> list[tuple[np.ndarray, int, dict]]:
         """Both servers' label vectors and stats; the first failure cancels the other."""
-        *sides, n_out = args
-        tasks = [asyncio.ensure_future(_labels_and_stats(link, queue, kind, n_out))
-                 for link, queue, kind in sides]
+        n_out = session.iface.n_outputs
+        tasks = [asyncio.ensure_future(labels_and_stats(session.garbler, session.to_g,
+                                                        "output_zero_labels", n_out)),
+                 asyncio.ensure_future(labels_and_stats(session.evaluator, session.to_e,
+                                                        "output_labels", n_out))]
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
             for task in done:
@@ -249,12 +289,10 @@ class AsyncSecureRunner:
                 task.cancel()
 
     @staticmethod
-    def _cancel(sid: bytes, *links: _Link) -> None:
+    def _cancel(session: _Prepared) -> None:
         """Tell both servers to drop a session this client gave up."""
-        for link in links:
-            if link.alive:
-                link.conn.post(messages.error("aborted", "the client gave up the session",
-                                              sid))
+        session.garbler.cancel(session.sid)
+        session.evaluator.cancel(session.sid)
 
     async def health(self, role: str) -> dict[str, Any]:
         """The ``health`` message of the garbler or the evaluator (session counters)."""
@@ -267,6 +305,13 @@ class AsyncSecureRunner:
             raise ServiceError(f"{role} health request failed: {exc!r}") from None
 
     async def close(self) -> None:
+        for task in list(self._filling):
+            task.cancel()
+        await asyncio.gather(*self._filling, return_exceptions=True)
+        for queue in self._prepared.values():
+            for session in queue:
+                self._cancel(session)
+        self._prepared.clear()
         links, self._links = list(self._links.values()), {}
         await asyncio.gather(*(link.close() for link in links), return_exceptions=True)
 
@@ -278,40 +323,24 @@ class AsyncSecureRunner:
         await self.close()
 
 
-async def _labels_and_stats(link: _Link, queue: asyncio.Queue, kind: str,
-                            n_out: int) -> tuple[np.ndarray, int, dict[str, Any]]:
-    """Read one server's label chunks then its stats for a session."""
-    labels = LabelAssembler(kind, n_out)
-    received = 0
-    where = f"the {link.role} at {format_addr(*link.conn.peer[:2])}" if link.conn.peer \
-        else f"the {link.role}"
-    while True:
-        msg, size = await queue.get()
-        if isinstance(msg, Exception):
-            raise ServiceError(f"{where}: {msg}")
-        received += size
-        if msg["t"] == "error":
-            raise ServiceError(f"{where} reported {msg['code']}: {msg['message']}")
-        if msg["t"] == kind:
-            try:
-                labels.add(msg)
-            except ProtocolError as exc:
-                raise ServiceError(f"{where}: {exc}") from None
-        elif msg["t"] == "stats" and labels.complete:
-            return labels.labels(), received, msg
-        else:
-            raise ServiceError(f"{where} sent {msg['t']} out of order")
-
-
 class SecureRunner:
     """Blocking wrapper of AsyncSecureRunner with its own event loop (uvloop)."""
 
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
-                 connect_timeout: float = 10.0) -> None:
+                 connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD) -> None:
         self._loop = new_event_loop()
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
-                                         connect_timeout)
+                                         connect_timeout, ahead)
+
+    def expect(self, circuit_id: str, count: int) -> None:
+        """At least ``count`` invocations of ``circuit_id`` are coming (see the async
+        runner); their garbling starts now."""
+        async def announce() -> None:
+            self._runner.expect(circuit_id, count)
+            await asyncio.sleep(0)
+
+        self._loop.run_until_complete(announce())
 
     def run(self, circuit_id: str, input_bits: np.ndarray) -> np.ndarray:
         """Decoded output bits; traffic and time of the run in ``self.last``."""

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from snail_common.circuit.ir import FIRST_INPUT
+from snail_common.circuit.schedule import Schedule
 from snail_common.gc import Evaluator, StreamError
 from snail_common.net import messages
 from snail_common.net.chunks import LabelAssembler, write_labels
@@ -72,6 +73,7 @@ class EvaluatorDaemon(Daemon):
     def __init__(self, options: Options, logger: logging.Logger) -> None:
         super().__init__(options, logger)
         self.sessions: dict[bytes, Session] = {}
+        self.ahead_buffered = 0  # table bytes held for sessions still awaiting labels
 
     async def serve(self, conn: Connection) -> None:
         try:
@@ -221,22 +223,17 @@ class EvaluatorDaemon(Daemon):
         elif s.garbler:
             raise ProtocolError(DUPLICATE_SESSION, "session id already streaming")
         s.garbler = True
-        received = size
         t0 = time.monotonic()
         try:
             self._check_same(s, msg)
             _, schedule = await self.circuit(msg["circuit"], msg["hash"])
             self._arm(s)
-            labels = await s.ready  # the watchdog bounds this wait
-            if s.watchdog:
-                s.watchdog.cancel()
-            t_labels = time.monotonic()
             self.counters["streaming"] += 1
             try:
-                ev = Evaluator(schedule, labels)
-                received += await self._evaluate(conn, s, ev)
+                ev, received, ahead, t_labels = await self._evaluate(conn, s, schedule)
             finally:
                 self.counters["streaming"] -= 1
+            received += size
             t_done = time.monotonic()
             outputs = ev.output_labels()
         except ProtocolError as exc:
@@ -258,31 +255,83 @@ class EvaluatorDaemon(Daemon):
         try:
             write_labels(s.client, "output_labels", sid, outputs)
             s.client.write(messages.make(
-                "stats", sid=sid, traffic={"garbler_to_evaluator": received},
+                "stats", sid=sid, traffic={"garbler_to_evaluator": received,
+                                           "garbled_ahead": ahead},
                 timing={"wait_s": t_labels - t0, "evaluate_s": t_done - t_labels}))
             await s.client.drain()
         except ConnectionClosed:
             pass  # the client left after its labels arrived: nobody to tell
         await conn.drain()
 
-    async def _evaluate(self, conn: Connection, s: Session, ev: Evaluator) -> int:
-        """Feed table frames to ``ev`` as they arrive; returns the bytes received."""
-        received, timeout = 0, self.options.session_timeout
-        while not ev.done:
-            msg, size = await conn.recv(timeout)
-            received += size
-            if s.failure is not None:
-                raise ProtocolError(s.failure.code, s.failure.message)
-            if msg["t"] == "error":
-                raise ProtocolError(msg["code"], f"the garbler reported: {msg['message']}")
-            if msg["t"] != "tables" or msg["sid"] != s.sid:
-                raise ProtocolError(UNEXPECTED, f"expected tables of this session, the "
-                                                f"garbler sent {msg['t']}")
-            try:
-                await self.work(ev.feed, msg["data"])
-            except StreamError as exc:
-                raise ProtocolError(STREAM, str(exc)) from None
-        return received
+    async def _evaluate(self, conn: Connection, s: Session,
+                        schedule: Schedule) -> tuple[Evaluator, int, int, float]:
+        """Read the table stream of ``s``; evaluate it once the client's labels are in.
+
+        Garbling does not depend on inputs, so a client may have the garbler garble ahead:
+        until its labels arrive, frames are buffered (up to ``ahead_bytes`` over all
+        sessions; beyond that the stream waits, and TCP holds the garbler back). The
+        watchdog bounds the wait for labels; once evaluating, a stalled stream times out.
+        Returns the evaluator, the bytes received, how many of them came before the
+        labels and when the labels arrived."""
+        received, ahead, timeout = 0, 0, self.options.session_timeout
+        buffered: list[bytes] = []
+        ev: Evaluator | None = None
+        t_labels = time.monotonic()
+        recv: asyncio.Future | None = None
+        try:
+            while ev is None or not ev.done:
+                if ev is None and s.ready.done():  # raises the session's failure, if any
+                    ev = Evaluator(schedule, s.ready.result())
+                    if s.watchdog:
+                        s.watchdog.cancel()
+                    t_labels = time.monotonic()
+                    frames = list(buffered)
+                    buffered.clear()
+                    ahead = received
+                    self.ahead_buffered -= sum(len(data) for data in frames)
+                    await self._feed(ev, frames)
+                    continue
+                if ev is None and self.ahead_buffered >= self.options.ahead_bytes:
+                    await asyncio.wait({s.ready})  # full: the stream waits for the labels
+                    continue
+                if recv is None:
+                    recv = asyncio.ensure_future(conn.recv(None if ev is None else timeout))
+                if ev is None:
+                    await asyncio.wait({recv, s.ready}, return_when=asyncio.FIRST_COMPLETED)
+                    if not recv.done():
+                        continue
+                msg, size = await recv
+                recv = None
+                received += size
+                if s.failure is not None:
+                    raise ProtocolError(s.failure.code, s.failure.message)
+                if msg["t"] == "error":
+                    raise ProtocolError(msg["code"], f"the garbler reported: {msg['message']}")
+                if msg["t"] != "tables" or msg["sid"] != s.sid:
+                    raise ProtocolError(UNEXPECTED, f"expected tables of this session, the "
+                                                    f"garbler sent {msg['t']}")
+                if ev is None:
+                    buffered.append(msg["data"])
+                    self.ahead_buffered += len(msg["data"])
+                else:
+                    await self._feed(ev, [msg["data"]])
+        finally:
+            self.ahead_buffered -= sum(len(data) for data in buffered)
+            if recv is not None:
+                recv.cancel()
+        return ev, received, ahead, t_labels
+
+    async def _feed(self, ev: Evaluator, frames: list[bytes]) -> None:
+        """Evaluate ``frames`` in the worker pool."""
+        try:
+            await self.work(_feed_all, ev, frames)
+        except StreamError as exc:
+            raise ProtocolError(STREAM, str(exc)) from None
+
+
+def _feed_all(ev: Evaluator, frames: list[bytes]) -> None:
+    for data in frames:
+        ev.feed(data)
 
 
 def _consume(future: asyncio.Future) -> None:

@@ -107,6 +107,30 @@ def test_traffic_and_time_are_measured(runner):
     assert inv.timing["garbler_garble_s"] > 0 and inv.timing["evaluator_evaluate_s"] > 0
 
 
+def test_expected_runs_are_garbled_before_their_inputs_exist(services):
+    """After ``expect``, the evaluator holds a session's whole table stream before the
+    client's labels arrive; each prepared session runs once with its own secrets."""
+    _, schedule = registry.compiled("ops/fmul-x4")
+    rng = np.random.default_rng(7)
+
+    async def scenario():
+        async with AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
+                                     services.tls_dir, timeout=60, ahead=2) as r:
+            r.expect("ops/fmul-x4", 3)
+            await asyncio.sleep(1.0)  # both prepared sessions garble meanwhile
+            runs = []
+            for _ in range(3):
+                bits = rng.random(schedule.n_inputs) < 0.5
+                runs.append((bits, await r.invoke("ops/fmul-x4", bits)))
+            return runs, r._prepared["ops/fmul-x4"]
+
+    runs, left = asyncio.run(scenario())
+    for bits, inv in runs:
+        np.testing.assert_array_equal(inv.outputs, cleartext("ops/fmul-x4", bits))
+    assert runs[0][1].garbled_ahead >= 32 * schedule.n_and  # all of it, before the labels
+    assert not left  # none prepared beyond the three announced
+
+
 def test_two_clients_at_once_get_their_own_results(services):
     ids = ["ops/fadd-x8", "ops/fmul-x8", "ops/fsub-x8"]
     rng = np.random.default_rng(2)

@@ -77,6 +77,10 @@ class Backend:
     def prepare(self, spec: Spec) -> None:
         """Build or load what running ``spec`` needs, before any invocation is timed."""
 
+    def expect(self, spec: Spec, count: int) -> None:
+        """At least ``count`` invocations of ``spec`` are coming (a backend that can do
+        work ahead of its inputs may start now)."""
+
     def pad(self, spec: Spec, target: int) -> None:
         """Dummy invocations until ``target`` have been made, where someone watches how
         many there are (the servers); nothing to do for a local backend."""

@@ -97,6 +97,7 @@ def localize(problem: Problem, options: Options, backend: Backend,
     spec = options.spec(problem.n)
     nrm = pad(nrm, spec.points) if spec.points != nrm.n else nrm
     backend.prepare(spec)  # build or load now, not inside the first timed call
+    backend.expect(spec, options.min_invocations if options.mode == "sil" else 1)
     first = backend.invocations
     pose0 = frame.to_normalized(pose_from_rvec_tvec(pose_vectors.rvec, pose_vectors.tvec))
     solve = _solve_do if options.mode == "do" else _solve_sil

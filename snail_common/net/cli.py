@@ -45,6 +45,10 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Largest circuit (in AND gates) this daemon compiles or loads; "
                           "bigger ones are refused as too_large. Memory peaks at about "
                           "200 bytes per AND gate of the largest circuit."),
+        click.option("--ahead-mb", type=click.IntRange(0, 1 << 20),
+                     default=defaults.ahead_bytes >> 20, show_default=True,
+                     help="Evaluator: MiB of garbled tables held for sessions garbled "
+                          "ahead of their client's labels; beyond it streams wait."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
                      show_default=True,
                      help="Seconds SIGTERM waits for running sessions to finish."),
@@ -56,4 +60,5 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
 def options_from(kwargs: dict[str, Any]) -> Options:
     return Options(max_sessions=kwargs["max_sessions"],
                    session_timeout=kwargs["session_timeout"], grace=kwargs["grace"],
-                   workers=kwargs["workers"], max_and_gates=kwargs["max_and_gates"])
+                   workers=kwargs["workers"], max_and_gates=kwargs["max_and_gates"],
+                   ahead_bytes=kwargs["ahead_mb"] << 20)

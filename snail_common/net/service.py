@@ -60,6 +60,9 @@ class Options:
     # largest circuit compiled or loaded: a daemon's memory peaks at ~200 bytes per AND
     # gate of it (n=256 SIL-LM: 15.2 M AND, 3.0 GB; 20-iteration DO at n=6: 12.6 M, 2.2 GB)
     max_and_gates: int = 40_000_000
+    # garbled tables an evaluator holds for sessions whose client has not sent its labels
+    # yet (garble-ahead); beyond this the garbler's streams wait
+    ahead_bytes: int = 1 << 30
 
 
 class Daemon:

@@ -1,0 +1,136 @@
+"""The client's server connections: frames dispatched to sessions by sid.
+
+A client keeps one TLS connection to each server for its whole lifetime; every session
+(invocation, prepared or running) has an ``Inbox`` on each link into which the link's
+dispatcher drops that session's messages, or the link's failure.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from snail_common.net import messages
+from snail_common.net.chunks import LabelAssembler
+from snail_common.net.conn import Connection, format_addr
+from snail_common.net.errors import UNEXPECTED, ConnectionClosed, ProtocolError, RemoteError
+
+
+class ServiceError(Exception):
+    """A secure invocation failed (network, server error, timeout or integrity)."""
+
+
+class Inbox:
+    """The messages (or the failure) one server sent about one session, in order."""
+
+    def __init__(self) -> None:
+        self._items: deque[tuple[Any, int]] = deque()
+        self._ready = asyncio.Event()
+
+    def put(self, item: Any, size: int = 0) -> None:
+        self._items.append((item, size))
+        self._ready.set()
+
+    async def get(self) -> tuple[Any, int]:
+        while not self._items:
+            self._ready.clear()
+            await self._ready.wait()
+        return self._items.popleft()
+
+    @property
+    def failed(self) -> bool:
+        """The server already gave up this session (an error or a broken link)."""
+        return any(isinstance(m, Exception) or m["t"] == "error" for m, _ in self._items)
+
+
+class Link:
+    """One server connection, its frames dispatched to waiting sessions by sid."""
+
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+        self.role = conn.peer_role
+        self.waiting: dict[bytes, Inbox] = {}
+        self.health: asyncio.Future | None = None
+        self.failure: Exception | None = None
+        self._task = asyncio.get_running_loop().create_task(self._dispatch())
+
+    @property
+    def alive(self) -> bool:
+        return self.failure is None and not self.conn.ended
+
+    @property
+    def where(self) -> str:
+        peer = self.conn.peer
+        return f"the {self.role} at {format_addr(*peer[:2])}" if peer else f"the {self.role}"
+
+    async def _dispatch(self) -> None:
+        try:
+            while True:
+                msg, size = await self.conn.recv()
+                sid = msg.get("sid")
+                if sid is not None:
+                    inbox = self.waiting.get(sid)
+                    if inbox is not None:  # else: a session already given up
+                        inbox.put(msg, size)
+                elif msg["t"] == "health" and self.health and not self.health.done():
+                    self.health.set_result(msg)
+                elif msg["t"] == "error":
+                    raise RemoteError(msg["code"], msg["message"])
+                elif msg["t"] == "bye":
+                    raise ConnectionClosed(f"the {self.role} is shutting down")
+                else:
+                    raise ProtocolError(UNEXPECTED, f"the {self.role} sent {msg['t']}")
+        except (ConnectionClosed, ProtocolError, RemoteError) as exc:
+            self._broken(exc)
+
+    def _broken(self, exc: Exception) -> None:
+        self.failure = exc
+        for inbox in self.waiting.values():
+            inbox.put(exc)
+        if self.health and not self.health.done():
+            self.health.set_exception(exc)
+        self.conn.abort()
+
+    def open(self, sid: bytes) -> Inbox:
+        inbox = Inbox()
+        if self.failure is not None:
+            inbox.put(self.failure)
+        self.waiting[sid] = inbox
+        return inbox
+
+    def cancel(self, sid: bytes) -> None:
+        """Tell the server to drop a session this client gave up (if the link lives)."""
+        self.waiting.pop(sid, None)
+        if self.alive:
+            self.conn.post(messages.error("aborted", "the client gave up the session", sid))
+
+    async def close(self) -> None:
+        self._task.cancel()
+        await asyncio.gather(self._task, return_exceptions=True)
+        await self.conn.close(messages.make("bye"))
+
+
+async def labels_and_stats(link: Link, inbox: Inbox, kind: str,
+                           n_out: int) -> tuple[np.ndarray, int, dict[str, Any]]:
+    """Read one server's label chunks, then its stats, for a session."""
+    labels = LabelAssembler(kind, n_out)
+    received = 0
+    while True:
+        msg, size = await inbox.get()
+        if isinstance(msg, Exception):
+            raise ServiceError(f"{link.where}: {msg}")
+        received += size
+        if msg["t"] == "error":
+            raise ServiceError(f"{link.where} reported {msg['code']}: {msg['message']}")
+        if msg["t"] == kind:
+            try:
+                labels.add(msg)
+            except ProtocolError as exc:
+                raise ServiceError(f"{link.where}: {exc}") from None
+        elif msg["t"] == "stats" and labels.complete:
+            return labels.labels(), received, msg
+        else:
+            raise ServiceError(f"{link.where} sent {msg['t']} out of order")
