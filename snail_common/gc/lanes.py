@@ -1,0 +1,192 @@
+"""Lanes: L concurrent runs of one schedule garbled or evaluated in one pass.
+
+A small circuit's run is a long chain of narrow steps whose fixed numpy cost dominates;
+concurrent sessions of the same circuit (a fleet of clients) can share that cost as lanes
+of one wider pass. Each lane keeps its own seed, offset D and AES key, and its stream is
+exactly what a single-run Garbler would send for those secrets (the tests check the bytes),
+so a lane garbler may serve single-run evaluators and the other way round.
+"""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+
+from snail_common.circuit.ir import FIRST_INPUT
+from snail_common.circuit.plan import plan_for
+from snail_common.circuit.runner import first_block, next_block, run_plan
+from snail_common.circuit.schedule import Schedule
+
+from .labels import check_delta, derive_zero_labels
+from .lane_kernel import LaneHalfGates
+from .stream import (
+    BLOCK_GATES,
+    BYTES_PER_AND,
+    FRAME_BYTES,
+    HEADER,
+    KEY_BYTES,
+    SCHEME_HALF_GATES,
+    Header,
+    StreamError,
+)
+
+_PER_AND = BYTES_PER_AND[SCHEME_HALF_GATES]
+
+
+def _lane_rows(per_lane: Sequence[np.ndarray], n_slots: int) -> np.ndarray:
+    """A (n_slots, 2L) slot array whose first rows hold each lane's given labels."""
+    lanes = len(per_lane)
+    labels = np.empty((n_slots, 2 * lanes), np.uint64)
+    for lane, rows in enumerate(per_lane):
+        labels[: len(rows), 2 * lane : 2 * lane + 2] = rows
+    return labels
+
+
+def _lane_labels(labels: np.ndarray, slots: np.ndarray, lane: int) -> np.ndarray:
+    return labels[slots, 2 * lane : 2 * lane + 2].copy()
+
+
+class LaneGarbler:
+    """Garbles one run of ``schedule`` per (seed, delta, key) lane, all in one pass.
+
+    ``frames()`` yields, per frame, a list with each lane's bytes (headers first); each
+    lane's concatenated frames are that lane's stream.
+    """
+
+    def __init__(self, schedule: Schedule, seeds: Sequence[bytes],
+                 deltas: Sequence[np.ndarray | bytes], keys: Sequence[bytes] | None = None,
+                 block_gates: int = BLOCK_GATES, frame_bytes: int = FRAME_BYTES) -> None:
+        if not seeds or len(seeds) != len(deltas):
+            raise ValueError(f"need one delta per seed, got {len(seeds)} seeds and "
+                             f"{len(deltas)} deltas")
+        keys = list(keys) if keys is not None else [secrets.token_bytes(KEY_BYTES)
+                                                    for _ in seeds]
+        if len(keys) != len(seeds) or any(len(k) != KEY_BYTES for k in keys):
+            raise ValueError(f"need one {KEY_BYTES}-byte key per lane")
+        self._schedule = schedule
+        self._deltas = np.array([check_delta(d) for d in deltas])
+        n_in = FIRST_INPUT + schedule.n_inputs
+        self._input_zero = [derive_zero_labels(seed, n_in) for seed in seeds]
+        self.headers = [Header(schedule.n_and, schedule.n_inputs, len(schedule.output_slots),
+                               block_gates, key) for key in keys]
+        self._frame_words = max(frame_bytes, block_gates * _PER_AND) // 8
+        self._outputs: list[np.ndarray] | None = None
+
+    @property
+    def lanes(self) -> int:
+        return len(self.headers)
+
+    @property
+    def output_zero_labels(self) -> list[np.ndarray]:
+        if self._outputs is None:
+            raise RuntimeError("the streams have not been garbled to their end yet")
+        return self._outputs
+
+    def frames(self) -> Iterator[list[bytes]]:
+        s, block = self._schedule, self.headers[0].block_gates
+        yield [h.pack() for h in self.headers]
+        labels = _lane_rows(self._input_zero, s.n_slots)
+        kernel = LaneHalfGates([h.key for h in self.headers], block, self._deltas)
+        frame = np.empty((self.lanes, self._frame_words), np.uint64)
+        run = run_plan(plan_for(s), labels, kernel.garble, block)
+        pos, m = 0, first_block(run)
+        while m is not None:
+            if pos + 4 * m > self._frame_words:
+                yield [lane[:pos].tobytes() for lane in frame]
+                pos = 0
+            tables = frame[:, pos : pos + 4 * m].reshape(self.lanes, 2 * m, 2)
+            pos += 4 * m
+            m = next_block(run, tables)
+        if pos:
+            yield [lane[:pos].tobytes() for lane in frame]
+        self._outputs = [_lane_labels(labels, s.output_slots, k) for k in range(self.lanes)]
+
+
+class LaneEvaluator:
+    """Evaluates one run of ``schedule`` per lane from each lane's active input labels;
+    ``feed(lane, data)`` takes that lane's stream cut anywhere, and the pass advances as
+    far as every lane's bytes allow (a lane that lags holds the others)."""
+
+    def __init__(self, schedule: Schedule, input_labels: Sequence[np.ndarray]) -> None:
+        n_in = FIRST_INPUT + schedule.n_inputs
+        for lane, rows in enumerate(input_labels):
+            if np.shape(rows) != (n_in, 2):
+                raise ValueError(f"lane {lane}: expected {n_in} input labels, got an array "
+                                 f"of shape {np.shape(rows)}")
+        self._schedule = schedule
+        self._labels = _lane_rows([np.asarray(r, np.uint64) for r in input_labels],
+                                  schedule.n_slots)
+        self._buffers = [bytearray() for _ in input_labels]
+        self._read = [0] * len(input_labels)  # bytes of each buffer already used
+        self.headers: list[Header | None] = [None] * len(input_labels)
+        self._run = None
+        self._block: int | None = None
+        self._tables = np.empty((len(input_labels), 0, 2), np.uint64)
+
+    @property
+    def lanes(self) -> int:
+        return len(self._buffers)
+
+    @property
+    def done(self) -> bool:
+        return self._run is not None and self._block is None
+
+    def output_labels(self, lane: int) -> np.ndarray:
+        if not self.done:
+            raise StreamError("the streams ended before the last garbled table")
+        return _lane_labels(self._labels, self._schedule.output_slots, lane)
+
+    def feed(self, lane: int, data: bytes | bytearray | memoryview) -> None:
+        """Append bytes of ``lane``'s stream and evaluate what every lane's bytes allow."""
+        if self.done and data:
+            raise StreamError(f"lane {lane}: {len(data)} bytes of trailing data after the "
+                              f"stream")
+        self._buffers[lane] += data
+        if self._run is None and not self._start():
+            return
+        self._advance()
+
+    def _start(self) -> bool:
+        """Read every lane's header once all have arrived; start the pass."""
+        if any(len(b) < HEADER.size for b in self._buffers):
+            return False
+        s = self._schedule
+        for lane, buf in enumerate(self._buffers):
+            header = Header.unpack(bytes(buf[: HEADER.size]))
+            header.check(s.n_and, s.n_inputs, len(s.output_slots))
+            if header.scheme != SCHEME_HALF_GATES:
+                raise StreamError(f"lane {lane}: lanes run half-gates streams only")
+            self.headers[lane] = header
+            self._read[lane] = HEADER.size
+        blocks = {h.block_gates for h in self.headers}
+        if len(blocks) != 1:
+            raise StreamError(f"lanes must share one block size, got {sorted(blocks)}")
+        block = blocks.pop()
+        kernel = LaneHalfGates([h.key for h in self.headers], block)
+        self._tables = np.empty((self.lanes, 2 * block, 2), np.uint64)
+        self._run = run_plan(plan_for(s), self._labels, kernel.evaluate, block)
+        self._block = first_block(self._run)
+        return True
+
+    def _advance(self) -> None:
+        while self._block is not None:
+            m = self._block
+            need = _PER_AND * m
+            if any(len(b) - r < need for b, r in zip(self._buffers, self._read)):
+                break
+            tables = self._tables[:, : 2 * m]
+            for lane, buf in enumerate(self._buffers):
+                r = self._read[lane]
+                tables[lane] = np.frombuffer(buf, np.uint64, 4 * m, r).reshape(2 * m, 2)
+                self._read[lane] = r + need
+            self._block = next_block(self._run, tables)
+        for lane, buf in enumerate(self._buffers):  # drop what was used, now and then
+            if self._read[lane] > (1 << 20) or self._read[lane] == len(buf):
+                del buf[: self._read[lane]]
+                self._read[lane] = 0
+        if self.done and any(self._buffers):
+            lane = next(k for k, b in enumerate(self._buffers) if b)
+            raise StreamError(f"lane {lane}: {len(self._buffers[lane])} bytes of trailing "
+                              f"data after the stream")
