@@ -4,6 +4,7 @@ sidecar; bench CLI contract."""
 import json
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 from shared_paths import BRISTOL
 
@@ -53,19 +54,28 @@ def test_hash_changes_with_the_netlist():
 
 def test_corrupt_cache_file_is_detected_and_rebuilt(tmp_path):
     cached("adder-v1", _adder, tmp_path)
-    path = tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.npz"
-    with np.load(path) as d:
-        arrays = dict(d)
-    arrays["a"] = arrays["a"].copy()
-    arrays["a"][0] ^= 1
-    np.savez(path, **arrays)
-    try:
+    path = tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.arrays"
+    for name in ("a", "schedule_and_a"):
+        file = path / f"{name}.npy"
+        data = bytearray(file.read_bytes())
+        data[-1] ^= 1  # one bit of the last element
+        file.write_bytes(bytes(data))
+        with pytest.raises(ValueError, match=f"{name}.npy fails its CRC"):
+            load(path)
+        c, _ = cached("adder-v1", _adder, tmp_path)  # rebuilt, and right
+        assert c.content_hash() == _adder().content_hash()
         load(path)
-        raise AssertionError("tampered circuit was accepted")
-    except ValueError as e:
-        assert "hash" in str(e)
-    c, _ = cached("adder-v1", _adder, tmp_path)
-    assert c.content_hash() == _adder().content_hash()
+
+
+def test_a_loaded_circuit_is_mapped_read_only_and_keeps_its_hash(tmp_path):
+    """Servers map the arrays instead of reading them (the netlist is never touched),
+    so nothing may write into them; the stored hash is the built circuit's."""
+    built, _ = cached("adder-v1", _adder, tmp_path)
+    circuit, schedule = load(tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.arrays")
+    assert circuit._hash == built.content_hash()
+    for arr in (circuit.a, schedule.and_a, schedule.lin_terms):
+        assert isinstance(arr.base, np.memmap) or isinstance(arr, np.memmap)
+        assert not arr.flags.writeable
 
 
 def test_a_new_scheduler_never_loads_a_stale_schedule(tmp_path, monkeypatch):
@@ -83,7 +93,7 @@ def test_a_new_scheduler_never_loads_a_stale_schedule(tmp_path, monkeypatch):
     monkeypatch.setattr("snail_common.circuit.cache.SCHEDULE_VERSION", SCHEDULE_VERSION + 1)
     cached("adder-v1", build, tmp_path)
     assert len(builds) == 2
-    assert len(list(tmp_path.glob("adder-v1.*.npz"))) == 2
+    assert len(list(tmp_path.glob("adder-v1.*.arrays"))) == 2
 
 
 def _never():
@@ -109,7 +119,7 @@ def test_interface_comes_from_the_sidecar_or_an_unscheduled_build(tmp_path, monk
     monkeypatch.setattr(cache, "schedule_circuit", lambda _: _never())
     assert cached_interface("adder-v2", _adder, tmp_path) == circuit.interface()
     assert cached_interface("adder-v2", _never, tmp_path) == circuit.interface()
-    assert not list(tmp_path.glob("adder-v2.*.npz"))
+    assert not list(tmp_path.glob("adder-v2.*.arrays"))
 
 
 def test_corrupt_interface_sidecar_is_rebuilt(tmp_path):

@@ -106,7 +106,7 @@ def test_the_cache_key_is_the_id_and_the_two_versions(tmp_path, monkeypatch):
     name, _ = registry._resolve("loc/lm-sil-ldlt-n4")
     assert name == f"loc-lm-sil-ldlt-n4.{family.VERSION}"
     assert cache._path(name, None) == tmp_path / (
-        f"loc-lm-sil-ldlt-n4.{family.VERSION}.s{SCHEDULE_VERSION}.npz")
+        f"loc-lm-sil-ldlt-n4.{family.VERSION}.s{SCHEDULE_VERSION}.arrays")
     bumped = registry.Family("loc", family.VERSION + "x", family.FAMILY.resolve, "e")
     monkeypatch.setitem(registry._families, "loc", bumped)
     assert registry._resolve("loc/lm-sil-ldlt-n4")[0] != name

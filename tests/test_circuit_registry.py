@@ -51,7 +51,7 @@ def test_compiled_once_then_served_from_memory_and_disk(tmp_path, monkeypatch):
     first = registry.compiled("ops/fadd-x2")
     assert registry.compiled("ops/fadd-x2") is first
     assert registry.lookup("ops/fadd-x2") is first
-    assert list(tmp_path.glob("ops-fadd-x2.*.npz"))
+    assert list(tmp_path.glob("ops-fadd-x2.*.arrays"))
     monkeypatch.setattr(registry, "_lru", type(registry._lru)())
     assert registry.lookup("ops/fadd-x2") is None
     again = registry.compiled("ops/fadd-x2")  # from the disk cache
