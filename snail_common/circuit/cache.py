@@ -15,6 +15,7 @@ n = 256 circuit took 6.6 s of reads, copies and page faults from an npz).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -27,6 +28,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from . import plan_store
 from .ir import Circuit, Group, Interface
 from .schedule import SCHEDULE_VERSION, Schedule, schedule_circuit
 
@@ -111,7 +113,47 @@ def load(path: Path) -> tuple[Circuit, Schedule]:
                       [Group.from_json(g) for g in meta["inputs"]],
                       [Group.from_json(g) for g in meta["outputs"]],
                       d["and_depth"], d["xor_depth"], _hash=meta["hash"])
-    return circuit, Schedule.from_arrays(d)
+    schedule = Schedule.from_arrays(d)
+    schedule.plan_source = StoredPlans(path)
+    return circuit, schedule
+
+
+class StoredPlans:
+    """Engine plans kept in a cache entry (plan_store.py says why): loaded if present and
+    intact, else built and stored for the next load. A plan that cannot be stored is
+    still returned: the cache is an optimization."""
+
+    def __init__(self, entry: Path) -> None:
+        self.entry = entry
+
+    def get(self, kind: str, build: Callable[[], plan_store.Plan]) -> plan_store.Plan:
+        name = f"plan{plan_store.FORMAT}-{kind}"
+        try:
+            return plan_store.decode(self._load(name))
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # absent, partly written or corrupt: build it
+        plan = build()
+        with contextlib.suppress(OSError):
+            self._save(name, plan_store.encode(plan))
+        return plan
+
+    def _load(self, name: str) -> plan_store.StoredPlan:
+        crcs = json.loads((self.entry / f"{name}.json").read_bytes())
+        parts = []
+        for field in plan_store.StoredPlan._fields:
+            file = self.entry / f"{name}-{field}.npy"
+            if _crc(file) != crcs[field]:
+                raise ValueError(f"{file} fails its CRC")
+            parts.append(np.load(file, mmap_mode="r"))
+        return plan_store.StoredPlan(*parts)
+
+    def _save(self, name: str, stored: plan_store.StoredPlan) -> None:
+        crcs = {}
+        for field, arr in zip(stored._fields, stored):
+            file = self.entry / f"{name}-{field}.npy"
+            _write_atomic(file, lambda f, arr=arr: np.save(f, arr))
+            crcs[field] = _crc(file)
+        _write_atomic(self.entry / f"{name}.json", lambda f: f.write(json.dumps(crcs).encode()))
 
 
 def cached(name: str, build: Callable[[], Circuit],

@@ -298,8 +298,22 @@ def _ragged(parts: list[tuple[np.ndarray, list[np.ndarray]]]) -> RaggedGroup:
                        (np.cumsum(counts) - counts).astype(np.intp))
 
 
-_adjacent = per_object(lambda schedule: _build(schedule, False))
-_strided = per_object(lambda schedule: _build(schedule, True))
+# Bump when a change here changes any plan: gates are numbered (hash tweaks, table order)
+# in plan order, so garbler and evaluator must use the same plan, and plans are stored
+# with cached schedules (tests/test_plan_store.py pins a plan's digest).
+PLAN_VERSION = 1
+
+
+def _stored_or_built(schedule: Schedule, strided: bool) -> Plan:
+    source = schedule.plan_source
+    kind = f"v{PLAN_VERSION}-{'strided' if strided else 'adjacent'}"
+    if source is None:
+        return _build(schedule, strided)
+    return source.get(kind, lambda: _build(schedule, strided))
+
+
+_adjacent = per_object(lambda schedule: _stored_or_built(schedule, False))
+_strided = per_object(lambda schedule: _stored_or_built(schedule, True))
 
 
 def plan_for(schedule: Schedule, strided: bool = False) -> Plan:

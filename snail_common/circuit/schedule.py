@@ -29,7 +29,7 @@ of 9.1 M). NOT is XOR with the constant-1 wire.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -84,6 +84,9 @@ class Schedule:
     lin_terms: np.ndarray
     output_slots: np.ndarray
     disjoint_io: bool = False
+    # where plans of this schedule are stored (a cache entry), if anywhere: an object
+    # with get(kind, build) -> plan, see cache.py
+    plan_source: Any = field(default=None, repr=False, compare=False)
     _steps: list | None = field(default=None, repr=False, compare=False)
 
     ARRAYS = ("step_kind", "step_lo", "step_hi", "and_out", "and_a", "and_b", "lin_out",
