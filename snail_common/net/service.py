@@ -62,7 +62,7 @@ class Options:
     max_and_gates: int = 40_000_000
     # garbled tables an evaluator holds for sessions whose client has not sent its labels
     # yet (garble-ahead); beyond this the garbler's streams wait
-    ahead_bytes: int = 1 << 30
+    ahead_bytes: int = 256 << 20
 
 
 class Daemon:
