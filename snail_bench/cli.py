@@ -158,10 +158,13 @@ def engine(as_json: bool) -> None:
 @click.option("--evaluator", metavar="HOST:PORT", help="A running evaluator.")
 @click.option("--tls-dir", type=click.Path(exists=True, file_okay=False),
               help="Directory from `snail-client certs` with the client's certificate.")
+@click.option("--clients", type=click.IntRange(1, 256), default=1, show_default=True,
+              help="Concurrent clients (each with its own connections) invoking the same "
+                   "circuit: adds total invocations per second and each client's median.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], repeat: int,
             garbler: str | None, evaluator: str | None, tls_dir: str | None,
-            as_json: bool) -> None:
+            clients: int, as_json: bool) -> None:
     """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
     per link, and the servers' peak memory. Circuits are compiled on first use."""
     from snail_client.embedded import check_addresses
@@ -177,7 +180,7 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
     from snail_client.secure import ServiceError
 
     try:
-        report = service_report(specs, repeat, garbler, evaluator, tls_dir)
+        report = service_report(specs, repeat, garbler, evaluator, tls_dir, clients)
     except ServiceError as e:
         click.echo(f"snail-bench: {e}", err=True)
         sys.exit(1)
@@ -190,6 +193,11 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
         click.echo(f"{name:>20}: median {row['median_s']:.3f} s (min {row['min_s']:.3f}, "
                    f"max {row['max_s']:.3f}, first {row['first_s']:.3f})  {mb:.1f} MB "
                    f"garbler->evaluator  {row['and']:,} AND  peak RSS {rss or 'n/a'}")
+        if "clients" in row:
+            worst = max(row["client_median_s"])
+            click.echo(f"{'':>20}  {row['clients']} clients: "
+                       f"{row['throughput_inv_per_s']:.1f} invocations/s in total, "
+                       f"slowest client's median {worst:.3f} s")
 
 
 if __name__ == "__main__":

@@ -5,24 +5,31 @@ to both servers and back over TLS, plus the bytes on each link. Inputs are fresh
 bits: garbling does the same work whatever the data. The first run of each circuit is
 reported apart (``first_s``), since a freshly started daemon also loads the circuit then.
 With the embedded daemons the servers' peak RSS is read from /proc (Linux).
+
+With ``clients`` > 1, that many clients (each its own pair of TLS connections, as separate
+devices would have) invoke the same circuit at once: after one warm-up run each, all start
+together and the report adds the total invocations per second and each client's median.
 """
 
 from __future__ import annotations
 
+import asyncio
 import secrets
 import statistics
+import time
 from pathlib import Path
 
 import numpy as np
 
 from snail_client.embedded import connected
-from snail_client.secure import Invocation, SecureRunner
+from snail_client.secure import AsyncSecureRunner, Invocation, SecureRunner
 from snail_common.circuit import registry
 from snail_common.pnp.spec import Spec
 
 
 def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
-                   evaluator: str | None = None, tls_dir: str | None = None) -> dict:
+                   evaluator: str | None = None, tls_dir: str | None = None,
+                   clients: int = 1) -> dict:
     """``{"service": {circuit_id: {...}}}``: per circuit, the first run and ``repeat``
     warm runs (median, min, max wall seconds), bytes per link and server timings of one
     run, and (embedded daemons only) each server's peak RSS so far: a high-water mark
@@ -31,6 +38,8 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
     with connected(garbler, evaluator, tls_dir) as (runner, services):
         for spec in specs:
             report[spec.circuit_id] = _measure(runner, spec, repeat)
+            if clients > 1:
+                report[spec.circuit_id].update(_fleet(runner, spec, repeat, clients))
             if services is not None:
                 report[spec.circuit_id]["peak_rss_mb"] = {
                     daemon.role: _peak_rss_mb(daemon.process.pid)
@@ -53,6 +62,39 @@ def _measure(runner: SecureRunner, spec: Spec, repeat: int) -> dict:
             "median_s": round(statistics.median(walls), 4), "min_s": round(min(walls), 4),
             "max_s": round(max(walls), 4), "repeat": repeat, "traffic": warm[-1].traffic,
             "timing": {k: round(v, 4) for k, v in warm[-1].timing.items()}}
+
+
+def _fleet(runner: SecureRunner, spec: Spec, repeat: int, clients: int) -> dict:
+    """``clients`` concurrent clients, ``repeat`` runs each after one warm-up: total
+    invocations per second over the measured phase and each client's median seconds."""
+    garbler, evaluator, tls_dir = runner.endpoints
+    iface = registry.interface(spec.registry_id)
+
+    async def fleet() -> tuple[float, list[float]]:
+        started = asyncio.Barrier(clients + 1)
+
+        async def client() -> float:
+            rng = np.random.default_rng(secrets.randbits(128))
+            async with AsyncSecureRunner(garbler, evaluator, tls_dir) as r:
+                def bits() -> np.ndarray:
+                    return rng.integers(0, 2, iface.n_inputs).astype(bool)
+
+                await r.invoke(spec.registry_id, bits())
+                await started.wait()
+                r.expect(spec.registry_id, repeat)
+                walls = [(await r.invoke(spec.registry_id, bits())).wall_s
+                         for _ in range(repeat)]
+                return statistics.median(walls)
+
+        tasks = [asyncio.ensure_future(client()) for _ in range(clients)]
+        await started.wait()
+        t0 = time.perf_counter()
+        medians = await asyncio.gather(*tasks)
+        return time.perf_counter() - t0, medians
+
+    elapsed, medians = asyncio.run(fleet())
+    return {"clients": clients, "throughput_inv_per_s": round(clients * repeat / elapsed, 2),
+            "client_median_s": [round(m, 4) for m in medians]}
 
 
 def _peak_rss_mb(pid: int) -> float | None:

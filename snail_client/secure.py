@@ -115,6 +115,7 @@ class AsyncSecureRunner:
         families.register_all()
         self.garbler_addr = _addr(garbler_addr, "garbler address")
         self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
+        self.tls_dir = tls_dir
         self.ctx = tls.client_context(tls_dir, "client")
         self.timeout = timeout
         self.connect_timeout = connect_timeout
@@ -351,6 +352,12 @@ class SecureRunner:
 
     def health(self, role: str) -> dict[str, Any]:
         return self._loop.run_until_complete(self._runner.health(role))
+
+    @property
+    def endpoints(self) -> tuple[tuple[str, int], tuple[str, int], str | Path]:
+        """(garbler address, evaluator address, TLS directory): to open more clients."""
+        r = self._runner
+        return r.garbler_addr, r.evaluator_addr, r.tls_dir
 
     @property
     def last(self) -> Invocation | None:

@@ -49,6 +49,8 @@ from snail_common.net.errors import (
 from snail_common.net.logs import event
 from snail_common.net.service import Daemon, Options
 
+from .lanes import LaneBatcher, LaneView
+
 MAX_IDLE = 8  # pooled idle connections to the evaluator
 INLINE_INPUTS = 1 << 14
 # frame sizing: aim for a frame every ~2 ms of garbling so that the evaluator overlaps
@@ -80,6 +82,7 @@ class GarblerDaemon(Daemon):
         self.evaluator = evaluator
         self.client_ctx = client_ctx  # TLS context for the link to the evaluator
         self.idle: list[Connection] = []
+        self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
 
     async def serve(self, conn: Connection) -> None:
         tasks: dict[bytes, asyncio.Task] = {}
@@ -136,10 +139,14 @@ class GarblerDaemon(Daemon):
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
             block, frame = frame_plan(schedule)
-            make = functools.partial(Garbler, schedule, req["seed"], req["delta"], req["key"],
-                                     block_gates=block, frame_bytes=frame)
-            # deriving the input labels is AES over the inputs: inline unless large
-            garbler = make() if schedule.n_inputs < INLINE_INPUTS else await self.work(make)
+            garbler = await self.lanes.lane(req["circuit"], schedule, req["seed"],
+                                            req["delta"], req["key"], block, frame)
+            if garbler is None:
+                make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
+                                         req["key"], block_gates=block, frame_bytes=frame)
+                # deriving the input labels is AES over the inputs: inline unless large
+                garbler = (make() if schedule.n_inputs < INLINE_INPUTS
+                           else await self.work(make))
             t_ready = time.monotonic()
             evaluator = await self._acquire()
             try:
@@ -150,7 +157,8 @@ class GarblerDaemon(Daemon):
                     self.counters["streaming"] -= 1
                 t_streamed = time.monotonic()
                 delivered = self._reply(client, sid, garbler, sent, {
-                    "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready})
+                    "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
+                    "lanes": float(getattr(garbler, "lanes", 1))})
                 if not answered:  # the client need not wait for this
                     await self._verdict(evaluator, sid)
             except BaseException:
@@ -178,7 +186,7 @@ class GarblerDaemon(Daemon):
                   circuit=req["circuit"], seconds=round(time.monotonic() - t0, 4),
                   garbler_to_evaluator=sent)
 
-    def _reply(self, client: Connection, sid: bytes, garbler: Garbler, sent: int,
+    def _reply(self, client: Connection, sid: bytes, garbler: Garbler | LaneView, sent: int,
                timing: dict[str, float]) -> bool:
         """Queue the output zero-labels and stats for the client; False if it is gone."""
         try:
@@ -194,7 +202,7 @@ class GarblerDaemon(Daemon):
         event(self.log, "session_error", logging.WARNING, sid=sid, code=code, reason=message)
         client.post(messages.error(code, message, sid))
 
-    async def _stream(self, evaluator: Connection, garbler: Garbler,
+    async def _stream(self, evaluator: Connection, garbler: Garbler | LaneView,
                       req: dict[str, Any]) -> tuple[int, bool]:
         """Send session_start and every table frame; garbling of the next frame overlaps
         the sending of this one. Returns the bytes sent and whether the evaluator has

@@ -49,6 +49,13 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      default=defaults.ahead_bytes >> 20, show_default=True,
                      help="Evaluator: MiB of garbled tables held for sessions garbled "
                           "ahead of their client's labels; beyond it streams wait."),
+        click.option("--lane-window-ms", type=click.FloatRange(0, 1000),
+                     default=defaults.lane_window_ms, show_default=True,
+                     help="Garbler: requests for the same circuit arriving within this many "
+                          "ms are garbled together as lanes of one pass (more throughput "
+                          "for a fleet of clients, up to this much more latency); 0: off."),
+        click.option("--max-lanes", type=click.IntRange(1, 256), default=defaults.max_lanes,
+                     show_default=True, help="Garbler: most requests in one lane batch."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
                      show_default=True,
                      help="Seconds SIGTERM waits for running sessions to finish."),
@@ -61,4 +68,5 @@ def options_from(kwargs: dict[str, Any]) -> Options:
     return Options(max_sessions=kwargs["max_sessions"],
                    session_timeout=kwargs["session_timeout"], grace=kwargs["grace"],
                    workers=kwargs["workers"], max_and_gates=kwargs["max_and_gates"],
-                   ahead_bytes=kwargs["ahead_mb"] << 20)
+                   ahead_bytes=kwargs["ahead_mb"] << 20,
+                   lane_window_ms=kwargs["lane_window_ms"], max_lanes=kwargs["max_lanes"])

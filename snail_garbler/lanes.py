@@ -1,0 +1,133 @@
+"""Batching concurrent garble requests of one circuit into lanes of one pass.
+
+A fleet of clients sends many requests for the same small circuit; each alone is a long
+chain of narrow steps whose fixed cost dominates. Requests that arrive within a short
+window (``--lane-window-ms``; 0 turns batching off) are garbled together by a
+LaneGarbler, each lane with its client's own seed, offset and key, and each session still
+streams its own tables (byte for byte what it would get alone) on its own connection.
+
+A session sees its lane through ``LaneView``, which quacks like a Garbler (``frames()``,
+``output_zero_labels``): whichever session needs a frame first garbles the next frame of
+every lane, under the batch's lock, in the worker pool; the other lanes' frames wait in
+their queues. A lane whose session ends early stops collecting frames.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections import deque
+from collections.abc import Iterator
+
+import numpy as np
+
+from snail_common.circuit.schedule import Schedule
+from snail_common.gc.lanes import LaneGarbler
+
+
+class _Batch:
+    def __init__(self, schedule: Schedule, block: int, frame: int) -> None:
+        self.schedule, self.block, self.frame = schedule, block, frame
+        self.secrets: list[tuple[bytes, bytes, bytes]] = []
+        self.ready = asyncio.get_running_loop().create_future()
+        self._lock = threading.Lock()
+        self._frames: Iterator[list[bytes]] | None = None
+        self._garbler: LaneGarbler | None = None
+        self._queues: list[deque[bytes] | None] = []
+        self._ended = False
+
+    def join(self, seed: bytes, delta: bytes, key: bytes) -> int:
+        self.secrets.append((seed, delta, key))
+        self._queues.append(deque())
+        return len(self.secrets) - 1
+
+    def close(self) -> None:
+        if not self.ready.done():
+            self.ready.set_result(None)
+
+    def next_frame(self, lane: int) -> bytes | None:
+        """Lane ``lane``'s next frame (garbling every lane's if none is queued), or None
+        at the end of the stream. Runs in the worker pool."""
+        with self._lock:
+            queue = self._queues[lane]
+            while not queue and not self._ended:
+                if self._frames is None:
+                    seeds, deltas, keys = zip(*self.secrets)
+                    self._garbler = LaneGarbler(self.schedule, seeds, deltas, keys,
+                                                self.block, self.frame)
+                    self._frames = self._garbler.frames()
+                parts = next(self._frames, None)
+                if parts is None:
+                    self._ended = True
+                    break
+                for q, part in zip(self._queues, parts):
+                    if q is not None:
+                        q.append(part)
+            return queue.popleft() if queue else None
+
+    def leave(self, lane: int) -> None:
+        """The lane's session is over: stop queueing its frames."""
+        with self._lock:
+            self._queues[lane] = None
+
+    def output_zero_labels(self, lane: int) -> np.ndarray:
+        assert self._garbler is not None, "read after the stream"
+        return self._garbler.output_zero_labels[lane]
+
+
+class LaneView:
+    """One session's lane of a batch, used where a Garbler would be."""
+
+    def __init__(self, batch: _Batch, lane: int) -> None:
+        self._batch, self._lane = batch, lane
+
+    @property
+    def lanes(self) -> int:
+        return len(self._batch.secrets)
+
+    def frames(self) -> Iterator[bytes]:
+        try:
+            while (data := self._batch.next_frame(self._lane)) is not None:
+                yield data
+        finally:
+            self._batch.leave(self._lane)
+
+    @property
+    def output_zero_labels(self) -> np.ndarray:
+        return self._batch.output_zero_labels(self._lane)
+
+
+class LaneBatcher:
+    """Groups requests per (circuit, block, frame size) arriving within ``window_s``."""
+
+    def __init__(self, window_s: float, max_lanes: int) -> None:
+        self.window_s, self.max_lanes = window_s, max_lanes
+        self._open: dict[tuple[str, int, int], _Batch] = {}
+
+    async def lane(self, circuit_id: str, schedule: Schedule, seed: bytes, delta: bytes,
+                   key: bytes, block: int, frame: int) -> LaneView | None:
+        """This request's lane of the batch it joins, once the batch's window has closed;
+        None when batching is off or nobody else came (a lone run garbles faster alone)."""
+        if self.window_s <= 0 or self.max_lanes <= 1:
+            return None
+        group = (circuit_id, block, frame)
+        batch = self._open.get(group)
+        if batch is None:
+            batch = self._open[group] = _Batch(schedule, block, frame)
+            asyncio.get_running_loop().call_later(self.window_s, self._close, group, batch)
+        lane = batch.join(seed, delta, key)
+        if len(batch.secrets) >= self.max_lanes:
+            self._close(group, batch)
+        try:
+            await asyncio.shield(batch.ready)
+        except asyncio.CancelledError:
+            batch.leave(lane)
+            raise
+        if len(batch.secrets) == 1:
+            return None
+        return LaneView(batch, lane)
+
+    def _close(self, group: tuple[str, int, int], batch: _Batch) -> None:
+        if self._open.get(group) is batch:
+            del self._open[group]
+        batch.close()
