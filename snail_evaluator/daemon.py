@@ -31,7 +31,7 @@ from typing import Any
 
 from snail_common.circuit.ir import FIRST_INPUT
 from snail_common.circuit.schedule import Schedule
-from snail_common.gc import Evaluator, StreamError
+from snail_common.gc import StreamError
 from snail_common.net import messages
 from snail_common.net.chunks import LabelAssembler, write_labels
 from snail_common.net.conn import Connection
@@ -48,6 +48,8 @@ from snail_common.net.errors import (
 )
 from snail_common.net.logs import event
 from snail_common.net.service import Daemon, Options
+
+from .lanes import EvalLane, LaneBatcher, Solo
 
 
 @dataclass(eq=False)
@@ -74,6 +76,7 @@ class EvaluatorDaemon(Daemon):
         super().__init__(options, logger)
         self.sessions: dict[bytes, Session] = {}
         self.ahead_buffered = 0  # table bytes held for sessions still awaiting labels
+        self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
 
     async def serve(self, conn: Connection) -> None:
         try:
@@ -257,31 +260,34 @@ class EvaluatorDaemon(Daemon):
             s.client.write(messages.make(
                 "stats", sid=sid, traffic={"garbler_to_evaluator": received,
                                            "garbled_ahead": ahead},
-                timing={"wait_s": t_labels - t0, "evaluate_s": t_done - t_labels}))
+                timing={"wait_s": t_labels - t0, "evaluate_s": t_done - t_labels,
+                        "lanes": float(ev.lanes)}))
             await s.client.drain()
         except ConnectionClosed:
             pass  # the client left after its labels arrived: nobody to tell
         await conn.drain()
 
     async def _evaluate(self, conn: Connection, s: Session,
-                        schedule: Schedule) -> tuple[Evaluator, int, int, float]:
+                        schedule: Schedule) -> tuple[Solo | EvalLane, int, int, float]:
         """Read the table stream of ``s``; evaluate it once the client's labels are in.
 
         Garbling does not depend on inputs, so a client may have the garbler garble ahead:
         until its labels arrive, frames are buffered (up to ``ahead_bytes`` over all
         sessions; beyond that the stream waits, and TCP holds the garbler back). The
         watchdog bounds the wait for labels; once evaluating, a stalled stream times out.
-        Returns the evaluator, the bytes received, how many of them came before the
+        With lanes on, the session joins a batch when its labels come (lanes.py) and,
+        once its own stream is in, waits for the batch's pass to end.
+        Returns the evaluation, the bytes received, how many of them came before the
         labels and when the labels arrived."""
         received, ahead, timeout = 0, 0, self.options.session_timeout
         buffered: list[bytes] = []
-        ev: Evaluator | None = None
+        ev: Solo | EvalLane | None = None
         t_labels = time.monotonic()
         recv: asyncio.Future | None = None
         try:
-            while ev is None or not ev.done:
+            while ev is None or not ev.stream_complete:
                 if ev is None and s.ready.done():  # raises the session's failure, if any
-                    ev = Evaluator(schedule, s.ready.result())
+                    ev = await self.lanes.lane(s.circuit, schedule, s.ready.result())
                     if s.watchdog:
                         s.watchdog.cancel()
                     t_labels = time.monotonic()
@@ -315,13 +321,22 @@ class EvaluatorDaemon(Daemon):
                     self.ahead_buffered += len(msg["data"])
                 else:
                     await self._feed(ev, [msg["data"]])
+            try:
+                await asyncio.wait_for(ev.wait_done(), timeout)
+            except asyncio.TimeoutError:
+                raise TimeoutError(f"the other lanes of this session's batch stalled for "
+                                   f"{timeout:g} s") from None
+        except BaseException:
+            if ev is not None:
+                ev.drop()  # a batch goes on without this lane
+            raise
         finally:
             self.ahead_buffered -= sum(len(data) for data in buffered)
             if recv is not None:
                 recv.cancel()
         return ev, received, ahead, t_labels
 
-    async def _feed(self, ev: Evaluator, frames: list[bytes]) -> None:
+    async def _feed(self, ev: Solo | EvalLane, frames: list[bytes]) -> None:
         """Evaluate ``frames`` in the worker pool."""
         try:
             await self.work(_feed_all, ev, frames)
@@ -329,7 +344,7 @@ class EvaluatorDaemon(Daemon):
             raise ProtocolError(STREAM, str(exc)) from None
 
 
-def _feed_all(ev: Evaluator, frames: list[bytes]) -> None:
+def _feed_all(ev: Solo | EvalLane, frames: list[bytes]) -> None:
     for data in frames:
         ev.feed(data)
 

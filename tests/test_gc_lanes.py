@@ -102,3 +102,29 @@ def test_lanes_must_share_a_block_size_and_end_with_their_stream():
     ev.feed(0, same[0])
     with pytest.raises(StreamError, match="trailing"):
         ev.feed(1, same[1] + b"x")
+
+
+def test_a_dropped_lane_never_holds_up_the_others():
+    """A session that fails mid-stream is dropped: the other lanes finish, exactly."""
+    _, schedule = registry.compiled("ops/fmul-x4")
+    lanes = 3
+    rng = np.random.default_rng(9)
+    seeds, deltas, keys = secrets_for(lanes)
+    bits = rng.random((lanes, schedule.n_inputs)) < 0.5
+    garblers = [Garbler(schedule, s, d, k, block_gates=64) for s, d, k in
+                zip(seeds, deltas, keys)]
+    streams = [b"".join(g.frames()) for g in garblers]
+    for cut in (0, 10, len(streams[1]) // 2):  # before, inside and after the header
+        ev = LaneEvaluator(schedule, [active_input_labels(s, d, b)
+                                      for s, d, b in zip(seeds, deltas, bits)])
+        ev.feed(1, streams[1][:cut])
+        ev.feed(0, streams[0])
+        ev.drop(1)
+        ev.feed(1, b"late bytes are ignored")
+        ev.feed(2, streams[2])
+        assert ev.done
+        want = evaluate_bits(schedule, bits)
+        for k in (0, 2):
+            got = decode_output_labels(deltas[k], garblers[k].output_zero_labels,
+                                       ev.output_labels(k))
+            np.testing.assert_array_equal(got, want[k])

@@ -1,5 +1,5 @@
-"""Lanes in the garbler daemon: concurrent requests for one circuit garbled in one pass,
-each client still getting exactly its own result."""
+"""Lanes in the daemons: concurrent sessions of one circuit garbled and evaluated in one
+pass, each client still getting exactly its own result."""
 
 import asyncio
 
@@ -38,8 +38,9 @@ def test_concurrent_clients_share_a_pass_and_get_their_own_results(services):
     want = evaluate_bits(schedule, bits)
     for inv, expected in zip(runs, want):
         np.testing.assert_array_equal(inv.outputs, expected)
-    lanes = [inv.timing["garbler_lanes"] for inv in runs]
-    assert max(lanes) > 1, f"no batch formed: lanes per run {lanes}"
+    for role in ("garbler", "evaluator"):
+        lanes = [inv.timing[f"{role}_lanes"] for inv in runs]
+        assert max(lanes) > 1, f"the {role} formed no batch: lanes per run {lanes}"
 
 
 def test_a_lone_request_runs_alone_after_the_window(services):
@@ -53,4 +54,4 @@ def test_a_lone_request_runs_alone_after_the_window(services):
 
     inv = asyncio.run(one())
     np.testing.assert_array_equal(inv.outputs, evaluate_bits(schedule, row[None])[0])
-    assert inv.timing["garbler_lanes"] == 1
+    assert inv.timing["garbler_lanes"] == inv.timing["evaluator_lanes"] == 1

@@ -120,6 +120,7 @@ class LaneEvaluator:
                                   schedule.n_slots)
         self._buffers = [bytearray() for _ in input_labels]
         self._read = [0] * len(input_labels)  # bytes of each buffer already used
+        self._dropped: set[int] = set()  # lanes whose streams will not come
         self.headers: list[Header | None] = [None] * len(input_labels)
         self._run = None
         self._block: int | None = None
@@ -138,11 +139,25 @@ class LaneEvaluator:
             raise StreamError("the streams ended before the last garbled table")
         return _lane_labels(self._labels, self._schedule.output_slots, lane)
 
+    def drop(self, lane: int) -> None:
+        """``lane``'s stream will not come (its session failed): run it on zero tables
+        from now on so the other lanes go on; its result is garbage, never to be used."""
+        self._dropped.add(lane)
+        self._buffers[lane].clear()
+        self._read[lane] = 0
+        if len(self._dropped) == self.lanes:
+            return  # nobody is left to evaluate for
+        if self._run is None and not self._start():
+            return
+        self._advance()
+
     def feed(self, lane: int, data: bytes | bytearray | memoryview) -> None:
         """Append bytes of ``lane``'s stream and evaluate what every lane's bytes allow."""
         if self.done and data:
             raise StreamError(f"lane {lane}: {len(data)} bytes of trailing data after the "
                               f"stream")
+        if lane in self._dropped:
+            return
         self._buffers[lane] += data
         if self._run is None and not self._start():
             return
@@ -150,16 +165,19 @@ class LaneEvaluator:
 
     def _start(self) -> bool:
         """Read every lane's header once all have arrived; start the pass."""
-        if any(len(b) < HEADER.size for b in self._buffers):
+        live = [k for k in range(self.lanes) if k not in self._dropped]
+        if any(len(self._buffers[k]) < HEADER.size for k in live):
             return False
         s = self._schedule
-        for lane, buf in enumerate(self._buffers):
-            header = Header.unpack(bytes(buf[: HEADER.size]))
+        for lane in live:
+            header = Header.unpack(bytes(self._buffers[lane][: HEADER.size]))
             header.check(s.n_and, s.n_inputs, len(s.output_slots))
             if header.scheme != SCHEME_HALF_GATES:
                 raise StreamError(f"lane {lane}: lanes run half-gates streams only")
             self.headers[lane] = header
             self._read[lane] = HEADER.size
+        for lane in self._dropped:  # any key will do for a lane whose result is unused
+            self.headers[lane] = self.headers[live[0]]
         blocks = {h.block_gates for h in self.headers}
         if len(blocks) != 1:
             raise StreamError(f"lanes must share one block size, got {sorted(blocks)}")
@@ -174,10 +192,14 @@ class LaneEvaluator:
         while self._block is not None:
             m = self._block
             need = _PER_AND * m
-            if any(len(b) - r < need for b, r in zip(self._buffers, self._read)):
+            if any(len(b) - r < need for k, (b, r) in enumerate(zip(self._buffers, self._read))
+                   if k not in self._dropped):
                 break
             tables = self._tables[:, : 2 * m]
             for lane, buf in enumerate(self._buffers):
+                if lane in self._dropped:
+                    tables[lane] = 0
+                    continue
                 r = self._read[lane]
                 tables[lane] = np.frombuffer(buf, np.uint64, 4 * m, r).reshape(2 * m, 2)
                 self._read[lane] = r + need

@@ -51,11 +51,12 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                           "ahead of their client's labels; beyond it streams wait."),
         click.option("--lane-window-ms", type=click.FloatRange(0, 1000),
                      default=defaults.lane_window_ms, show_default=True,
-                     help="Garbler: requests for the same circuit arriving within this many "
-                          "ms are garbled together as lanes of one pass (more throughput "
-                          "for a fleet of clients, up to this much more latency); 0: off."),
+                     help="Sessions of the same circuit starting within this many ms "
+                          "(garbler: requests; evaluator: client labels) run together as "
+                          "lanes of one pass: more throughput for a fleet of clients, up "
+                          "to this much more latency; 0: off."),
         click.option("--max-lanes", type=click.IntRange(1, 256), default=defaults.max_lanes,
-                     show_default=True, help="Garbler: most requests in one lane batch."),
+                     show_default=True, help="Most sessions in one lane batch."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
                      show_default=True,
                      help="Seconds SIGTERM waits for running sessions to finish."),

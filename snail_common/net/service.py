@@ -63,8 +63,8 @@ class Options:
     # garbled tables an evaluator holds for sessions whose client has not sent its labels
     # yet (garble-ahead); beyond this the garbler's streams wait
     ahead_bytes: int = 256 << 20
-    # garbler: requests for one circuit arriving within this window are garbled as lanes
-    # of one pass (0: off), at most max_lanes at once
+    # sessions of one circuit starting within this window run as lanes of one pass
+    # (garbler: requests; evaluator: client labels; 0: off), at most max_lanes at once
     lane_window_ms: float = 0.0
     max_lanes: int = 16
 
