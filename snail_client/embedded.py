@@ -137,14 +137,16 @@ def check_addresses(garbler: str | None, evaluator: str | None,
 
 @contextlib.contextmanager
 def connected(garbler: str | None = None, evaluator: str | None = None,
-              tls_dir: str | None = None) -> Iterator[tuple[SecureRunner, Services | None]]:
+              tls_dir: str | None = None, daemon_args: tuple[str, ...] = (),
+              ) -> Iterator[tuple[SecureRunner, Services | None]]:
     """A runner for the servers at these addresses, or for embedded ones started for the
-    block (yielded too, so a caller can watch them; None for remote servers)."""
+    block with ``daemon_args`` (yielded too, so a caller can watch them; None for remote
+    servers)."""
     check_addresses(garbler, evaluator, tls_dir)
     if garbler:
         with SecureRunner(garbler, evaluator, tls_dir) as runner:
             yield runner, None
         return
-    with embedded_services() as services, SecureRunner(
+    with embedded_services(extra_args=daemon_args) as services, SecureRunner(
             services.garbler_addr, services.evaluator_addr, services.tls_dir) as runner:
         yield runner, services
