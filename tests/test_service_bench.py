@@ -41,3 +41,15 @@ def test_service_bench_reports_measured_runs():
 def test_service_bench_half_remote_addresses_is_a_usage_error():
     out = _bench("--points", "4", "--garbler", "127.0.0.1:1")
     assert out.returncode == 2 and "--tls-dir" in out.stderr
+
+
+def test_service_bench_measures_a_fleet_with_lanes():
+    out = _bench("--points", "4", "--repeat", "2", "--clients", "3", "--lane-window-ms", "50",
+                 "--json")
+    assert out.returncode == 0, out.stderr
+    row = json.loads(out.stdout)["service"]["lm-sil-ldlt-n4"]
+    assert row["clients"] == 3 and len(row["client_median_s"]) == 3
+    assert all(m > 0 for m in row["client_median_s"])
+    # 6 runs in at least the slowest client's 2 runs' time, and not absurdly fast
+    assert 0 < row["throughput_inv_per_s"] <= 6 / max(row["client_median_s"])
+    assert row["timing"]["garbler_lanes"] >= 1
