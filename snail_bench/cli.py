@@ -161,14 +161,13 @@ def engine(as_json: bool) -> None:
 @click.option("--clients", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Concurrent clients (each with its own connections) invoking the same "
                    "circuit: adds total invocations per second and each client's median.")
-@click.option("--lane-window-ms", type=click.FloatRange(0, 1000), default=0.0,
-              show_default=True,
+@click.option("--lane-window-ms", type=click.FloatRange(0, 1000), default=None,
               help="Embedded daemons only: their --lane-window-ms (batch concurrent "
-                   "sessions into lanes; 0: off).")
+                   "sessions into lanes; 0: off; default: the daemons' own).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], repeat: int,
             garbler: str | None, evaluator: str | None, tls_dir: str | None,
-            clients: int, lane_window_ms: float, as_json: bool) -> None:
+            clients: int, lane_window_ms: float | None, as_json: bool) -> None:
     """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
     per link, and the servers' peak memory. Circuits are compiled on first use."""
     from snail_client.embedded import check_addresses
@@ -184,7 +183,7 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
     from snail_client.secure import ServiceError
 
     try:
-        if lane_window_ms and garbler:
+        if lane_window_ms is not None and garbler:
             raise click.UsageError("--lane-window-ms sets the embedded daemons; start "
                                    "remote ones with it instead")
         report = service_report(specs, repeat, garbler, evaluator, tls_dir, clients,

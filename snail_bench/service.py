@@ -29,13 +29,13 @@ from snail_common.pnp.spec import Spec
 
 def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
                    evaluator: str | None = None, tls_dir: str | None = None,
-                   clients: int = 1, lane_window_ms: float = 0.0) -> dict:
+                   clients: int = 1, lane_window_ms: float | None = None) -> dict:
     """``{"service": {circuit_id: {...}}}``: per circuit, the first run and ``repeat``
     warm runs (median, min, max wall seconds), bytes per link and server timings of one
     run, and (embedded daemons only) each server's peak RSS so far: a high-water mark
     over the daemon's life, so with several circuits it covers the largest run yet."""
     report: dict[str, dict] = {}
-    lanes = ("--lane-window-ms", str(lane_window_ms)) if lane_window_ms else ()
+    lanes = () if lane_window_ms is None else ("--lane-window-ms", str(lane_window_ms))
     with connected(garbler, evaluator, tls_dir, lanes) as (runner, services):
         for spec in specs:
             report[spec.circuit_id] = _measure(runner, spec, repeat)

@@ -331,6 +331,8 @@ class EvaluatorDaemon(Daemon):
                 ev.drop()  # a batch goes on without this lane
             raise
         finally:
+            if ev is not None:
+                self.lanes.release(s.circuit)
             self.ahead_buffered -= sum(len(data) for data in buffered)
             if recv is not None:
                 recv.cancel()

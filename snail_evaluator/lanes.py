@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+from collections import Counter
 
 import numpy as np
 
@@ -150,13 +151,19 @@ class LaneBatcher:
 
     def __init__(self, window_s: float, max_lanes: int) -> None:
         self.window_s, self.max_lanes = window_s, max_lanes
+        self._running: Counter[str] = Counter()  # runs under way, per circuit
         self._open: dict[str, _Batch] = {}
 
     async def lane(self, circuit_id: str, schedule: Schedule,
                    labels: np.ndarray) -> Solo | EvalLane:
-        if self.window_s <= 0 or self.max_lanes <= 1:
-            return Solo(schedule, labels)
+        """This session's lane once its batch's window has closed, or a Solo run: when
+        batching is off, nobody else came, or no other run of the circuit is under way (a
+        lone client never waits for the window). ``release`` every run when it ends."""
         batch = self._open.get(circuit_id)
+        if (self.window_s <= 0 or self.max_lanes <= 1
+                or (batch is None and not self._running[circuit_id])):
+            self._running[circuit_id] += 1
+            return Solo(schedule, labels)
         if batch is None:
             batch = self._open[circuit_id] = _Batch(schedule)
             asyncio.get_running_loop().call_later(self.window_s, self._close, circuit_id,
@@ -169,9 +176,16 @@ class LaneBatcher:
         except asyncio.CancelledError:
             batch.drop(lane)
             raise
+        self._running[circuit_id] += 1
         if len(batch.labels) == 1:
             return Solo(schedule, labels)
         return EvalLane(batch, lane)
+
+    def release(self, circuit_id: str) -> None:
+        """A run that ``lane`` returned (alone or in a batch) is over."""
+        self._running[circuit_id] -= 1
+        if self._running[circuit_id] <= 0:
+            del self._running[circuit_id]
 
     def _close(self, circuit_id: str, batch: _Batch) -> None:
         if self._open.get(circuit_id) is batch:

@@ -126,7 +126,7 @@ class GarblerDaemon(Daemon):
 
     async def _session(self, client: Connection, req: dict[str, Any]) -> None:
         sid, t0 = req["sid"], time.monotonic()
-        ok, sent = False, 0
+        ok, sent, running = False, 0, False
         try:
             self.admit()  # here, not in _start: a task cancelled unstarted holds no slot
         except ProtocolError as exc:
@@ -141,6 +141,7 @@ class GarblerDaemon(Daemon):
             block, frame = frame_plan(schedule)
             garbler = await self.lanes.lane(req["circuit"], schedule, req["seed"],
                                             req["delta"], req["key"], block, frame)
+            running = True
             if garbler is None:
                 make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
                                          req["key"], block_gates=block, frame_bytes=frame)
@@ -181,6 +182,8 @@ class GarblerDaemon(Daemon):
             self.log.exception("session_bug", extra={"snail_fields": {"sid": sid.hex()}})
             self._fail(client, sid, INTERNAL, f"internal error in the garbler: {exc!r}")
         finally:
+            if running:
+                self.lanes.release(req["circuit"])
             self.finish(ok)
             event(self.log, "session_done" if ok else "session_failed", sid=sid,
                   circuit=req["circuit"], seconds=round(time.monotonic() - t0, 4),

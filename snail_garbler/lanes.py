@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Iterator
 
 import numpy as np
@@ -102,16 +102,21 @@ class LaneBatcher:
 
     def __init__(self, window_s: float, max_lanes: int) -> None:
         self.window_s, self.max_lanes = window_s, max_lanes
+        self._running: Counter[str] = Counter()  # runs under way, per circuit
         self._open: dict[tuple[str, int, int], _Batch] = {}
 
     async def lane(self, circuit_id: str, schedule: Schedule, seed: bytes, delta: bytes,
                    key: bytes, block: int, frame: int) -> LaneView | None:
         """This request's lane of the batch it joins, once the batch's window has closed;
-        None when batching is off or nobody else came (a lone run garbles faster alone)."""
-        if self.window_s <= 0 or self.max_lanes <= 1:
-            return None
+        None to garble alone: when batching is off, when nobody else came, or when no
+        other run of the circuit is under way (no sign of a fleet: a lone client never
+        waits for the window). Every return is a run: ``release`` it when it ends."""
         group = (circuit_id, block, frame)
         batch = self._open.get(group)
+        if (self.window_s <= 0 or self.max_lanes <= 1
+                or (batch is None and not self._running[circuit_id])):
+            self._running[circuit_id] += 1
+            return None
         if batch is None:
             batch = self._open[group] = _Batch(schedule, block, frame)
             asyncio.get_running_loop().call_later(self.window_s, self._close, group, batch)
@@ -123,9 +128,16 @@ class LaneBatcher:
         except asyncio.CancelledError:
             batch.leave(lane)
             raise
+        self._running[circuit_id] += 1
         if len(batch.secrets) == 1:
             return None
         return LaneView(batch, lane)
+
+    def release(self, circuit_id: str) -> None:
+        """A run that ``lane`` returned (alone or in a batch) is over."""
+        self._running[circuit_id] -= 1
+        if self._running[circuit_id] <= 0:
+            del self._running[circuit_id]
 
     def _close(self, group: tuple[str, int, int], batch: _Batch) -> None:
         if self._open.get(group) is batch:

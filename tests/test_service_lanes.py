@@ -55,3 +55,29 @@ def test_a_lone_request_runs_alone_after_the_window(services):
     inv = asyncio.run(one())
     np.testing.assert_array_equal(inv.outputs, evaluate_bits(schedule, row[None])[0])
     assert inv.timing["garbler_lanes"] == inv.timing["evaluator_lanes"] == 1
+
+
+def test_a_lone_run_never_waits_for_the_window_and_a_fleet_does():
+    """No other run of the circuit under way: no batch (a window of 1000 s would show);
+    with one under way, the next ones wait for the window and share a pass."""
+    from snail_evaluator.lanes import EvalLane, LaneBatcher, Solo
+
+    _, schedule = registry.compiled(CIRCUIT)
+    labels = np.zeros((schedule.n_inputs + 2, 2), np.uint64)
+
+    async def scenario():
+        batcher = LaneBatcher(window_s=1000, max_lanes=2)
+        first = await asyncio.wait_for(batcher.lane(CIRCUIT, schedule, labels), 1.0)
+        assert isinstance(first, Solo)
+        # the first still runs: two more form a batch, closed at once by max_lanes
+        second, third = await asyncio.wait_for(asyncio.gather(
+            batcher.lane(CIRCUIT, schedule, labels),
+            batcher.lane(CIRCUIT, schedule, labels)), 1.0)
+        assert isinstance(second, EvalLane) and isinstance(third, EvalLane)
+        assert second.lanes == third.lanes == 2
+        for _ in range(3):
+            batcher.release(CIRCUIT)
+        alone = await asyncio.wait_for(batcher.lane(CIRCUIT, schedule, labels), 1.0)
+        assert isinstance(alone, Solo)
+
+    asyncio.run(scenario())

@@ -53,8 +53,9 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      default=defaults.lane_window_ms, show_default=True,
                      help="Sessions of the same circuit starting within this many ms "
                           "(garbler: requests; evaluator: client labels) run together as "
-                          "lanes of one pass: more throughput for a fleet of clients, up "
-                          "to this much more latency; 0: off."),
+                          "lanes of one pass: more throughput for a fleet of clients. A "
+                          "session waits for the window only while another run of its "
+                          "circuit is under way, so a lone client never does; 0: off."),
         click.option("--max-lanes", type=click.IntRange(1, 256), default=defaults.max_lanes,
                      show_default=True, help="Most sessions in one lane batch."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,

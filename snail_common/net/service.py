@@ -64,8 +64,9 @@ class Options:
     # yet (garble-ahead); beyond this the garbler's streams wait
     ahead_bytes: int = 256 << 20
     # sessions of one circuit starting within this window run as lanes of one pass
-    # (garbler: requests; evaluator: client labels; 0: off), at most max_lanes at once
-    lane_window_ms: float = 0.0
+    # (garbler: requests; evaluator: client labels; 0: off), at most max_lanes at once; a
+    # session waits for the window only while another run of its circuit is under way
+    lane_window_ms: float = 10.0
     max_lanes: int = 16
 
 
