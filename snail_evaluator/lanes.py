@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections import Counter
 
 import numpy as np
 
@@ -23,6 +22,7 @@ from snail_common.circuit.schedule import Schedule
 from snail_common.gc import Evaluator, StreamError
 from snail_common.gc.lanes import LaneEvaluator
 from snail_common.gc.stream import BYTES_PER_AND, HEADER, SCHEME_HALF_GATES
+from snail_common.net.batching import Batch, Batcher
 
 
 class Solo:
@@ -50,11 +50,11 @@ class Solo:
         return
 
 
-class _Batch:
+class _Batch(Batch):
     def __init__(self, schedule: Schedule) -> None:
+        super().__init__()
         self.schedule = schedule
         self.labels: list[np.ndarray] = []
-        self.ready = asyncio.get_running_loop().create_future()
         self.finished = asyncio.Event()
         self._loop = asyncio.get_running_loop()
         self._lock = threading.Lock()
@@ -68,10 +68,6 @@ class _Batch:
         self.labels.append(labels)
         self._fed.append(0)
         return len(self.labels) - 1
-
-    def close(self) -> None:
-        if not self.ready.done():
-            self.ready.set_result(None)
 
     def feed(self, lane: int, data: bytes) -> None:
         """Runs in the worker pool."""
@@ -147,47 +143,17 @@ class EvalLane:
 
 
 class LaneBatcher:
-    """Groups sessions of one circuit whose labels arrive within ``window_s``."""
+    """Groups sessions of one circuit by labels' arrival: see snail_common/net/batching."""
 
     def __init__(self, window_s: float, max_lanes: int) -> None:
-        self.window_s, self.max_lanes = window_s, max_lanes
-        self._running: Counter[str] = Counter()  # runs under way, per circuit
-        self._open: dict[str, _Batch] = {}
+        self._batcher: Batcher[_Batch] = Batcher(window_s, max_lanes)
 
     async def lane(self, circuit_id: str, schedule: Schedule,
                    labels: np.ndarray) -> Solo | EvalLane:
-        """This session's lane once its batch's window has closed, or a Solo run: when
-        batching is off, nobody else came, or no other run of the circuit is under way (a
-        lone client never waits for the window). ``release`` every run when it ends."""
-        batch = self._open.get(circuit_id)
-        if (self.window_s <= 0 or self.max_lanes <= 1
-                or (batch is None and not self._running[circuit_id])):
-            self._running[circuit_id] += 1
-            return Solo(schedule, labels)
-        if batch is None:
-            batch = self._open[circuit_id] = _Batch(schedule)
-            asyncio.get_running_loop().call_later(self.window_s, self._close, circuit_id,
-                                                  batch)
-        lane = batch.join(labels)
-        if len(batch.labels) >= self.max_lanes:
-            self._close(circuit_id, batch)
-        try:
-            await asyncio.shield(batch.ready)
-        except asyncio.CancelledError:
-            batch.drop(lane)
-            raise
-        self._running[circuit_id] += 1
-        if len(batch.labels) == 1:
-            return Solo(schedule, labels)
-        return EvalLane(batch, lane)
+        """This session's lane of its batch, or a Solo run; ``release`` it."""
+        joined = await self._batcher.join(circuit_id, circuit_id, lambda: _Batch(schedule),
+                                          lambda batch: batch.join(labels), _Batch.drop)
+        return Solo(schedule, labels) if joined is None else EvalLane(*joined)
 
     def release(self, circuit_id: str) -> None:
-        """A run that ``lane`` returned (alone or in a batch) is over."""
-        self._running[circuit_id] -= 1
-        if self._running[circuit_id] <= 0:
-            del self._running[circuit_id]
-
-    def _close(self, circuit_id: str, batch: _Batch) -> None:
-        if self._open.get(circuit_id) is batch:
-            del self._open[circuit_id]
-        batch.close()
+        self._batcher.release(circuit_id)

@@ -14,22 +14,22 @@ their queues. A lane whose session ends early stops collecting frames.
 
 from __future__ import annotations
 
-import asyncio
 import threading
-from collections import Counter, deque
+from collections import deque
 from collections.abc import Iterator
 
 import numpy as np
 
 from snail_common.circuit.schedule import Schedule
 from snail_common.gc.lanes import LaneGarbler
+from snail_common.net.batching import Batch, Batcher
 
 
-class _Batch:
+class _Batch(Batch):
     def __init__(self, schedule: Schedule, block: int, frame: int) -> None:
+        super().__init__()
         self.schedule, self.block, self.frame = schedule, block, frame
         self.secrets: list[tuple[bytes, bytes, bytes]] = []
-        self.ready = asyncio.get_running_loop().create_future()
         self._lock = threading.Lock()
         self._frames: Iterator[list[bytes]] | None = None
         self._garbler: LaneGarbler | None = None
@@ -40,10 +40,6 @@ class _Batch:
         self.secrets.append((seed, delta, key))
         self._queues.append(deque())
         return len(self.secrets) - 1
-
-    def close(self) -> None:
-        if not self.ready.done():
-            self.ready.set_result(None)
 
     def next_frame(self, lane: int) -> bytes | None:
         """Lane ``lane``'s next frame (garbling every lane's if none is queued), or None
@@ -98,48 +94,18 @@ class LaneView:
 
 
 class LaneBatcher:
-    """Groups requests per (circuit, block, frame size) arriving within ``window_s``."""
+    """Groups requests per (circuit, block, frame size): see snail_common/net/batching."""
 
     def __init__(self, window_s: float, max_lanes: int) -> None:
-        self.window_s, self.max_lanes = window_s, max_lanes
-        self._running: Counter[str] = Counter()  # runs under way, per circuit
-        self._open: dict[tuple[str, int, int], _Batch] = {}
+        self._batcher: Batcher[_Batch] = Batcher(window_s, max_lanes)
 
     async def lane(self, circuit_id: str, schedule: Schedule, seed: bytes, delta: bytes,
                    key: bytes, block: int, frame: int) -> LaneView | None:
-        """This request's lane of the batch it joins, once the batch's window has closed;
-        None to garble alone: when batching is off, when nobody else came, or when no
-        other run of the circuit is under way (no sign of a fleet: a lone client never
-        waits for the window). Every return is a run: ``release`` it when it ends."""
-        group = (circuit_id, block, frame)
-        batch = self._open.get(group)
-        if (self.window_s <= 0 or self.max_lanes <= 1
-                or (batch is None and not self._running[circuit_id])):
-            self._running[circuit_id] += 1
-            return None
-        if batch is None:
-            batch = self._open[group] = _Batch(schedule, block, frame)
-            asyncio.get_running_loop().call_later(self.window_s, self._close, group, batch)
-        lane = batch.join(seed, delta, key)
-        if len(batch.secrets) >= self.max_lanes:
-            self._close(group, batch)
-        try:
-            await asyncio.shield(batch.ready)
-        except asyncio.CancelledError:
-            batch.leave(lane)
-            raise
-        self._running[circuit_id] += 1
-        if len(batch.secrets) == 1:
-            return None
-        return LaneView(batch, lane)
+        """This request's lane of its batch, or None to garble alone; ``release`` it."""
+        joined = await self._batcher.join(
+            circuit_id, (circuit_id, block, frame), lambda: _Batch(schedule, block, frame),
+            lambda batch: batch.join(seed, delta, key), _Batch.leave)
+        return None if joined is None else LaneView(*joined)
 
     def release(self, circuit_id: str) -> None:
-        """A run that ``lane`` returned (alone or in a batch) is over."""
-        self._running[circuit_id] -= 1
-        if self._running[circuit_id] <= 0:
-            del self._running[circuit_id]
-
-    def _close(self, group: tuple[str, int, int], batch: _Batch) -> None:
-        if self._open.get(group) is batch:
-            del self._open[group]
-        batch.close()
+        self._batcher.release(circuit_id)
