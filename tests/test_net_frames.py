@@ -153,3 +153,69 @@ def test_reader_reports_a_partial_frame():
     reader = FrameReader()
     feed(reader, frame[:-1], [])
     assert reader.partial
+
+
+def _feed(reader: FrameReader, data: bytes) -> list:
+    """Write ``data`` through the reader's buffers as a transport would."""
+    out, pos = [], 0
+    while pos < len(data):
+        buf = reader.buffer()
+        n = min(len(buf), len(data) - pos)
+        buf[:n] = data[pos : pos + n]
+        pos += n
+        out += reader.filled(n)
+    return out
+
+
+def test_a_frame_of_millions_of_tiny_objects_is_refused_while_small():
+    """Four million empty maps in 4 MiB: refused after a handful of containers, with
+    bounded allocation, and the refusal keeps nothing of what was decoded."""
+    import gc
+    import tracemalloc
+
+    body = b"\xdd" + (4_000_000).to_bytes(4, "big") + b"\x80" * 4_000_000  # array32
+    frame = struct.pack(">I", len(body)) + body
+    tracemalloc.start()
+    try:
+        with pytest.raises(errors.ProtocolError) as caught:
+            _feed(FrameReader(), frame)
+        _, peak = tracemalloc.get_traced_memory()
+        exc = caught.value
+        del caught
+        gc.collect()
+        held, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert exc.code == errors.MALFORMED
+    assert peak < 32 << 20, f"decoding allocated {peak >> 20} MiB"  # the frame's buffers
+    assert held < 12 << 20, f"the refusal holds {held >> 20} MiB"
+    assert exc.__traceback__ is None or all(
+        "msg" not in tb.tb_frame.f_locals for tb in _walk(exc.__traceback__))
+
+
+def _walk(tb):
+    while tb is not None:
+        yield tb
+        tb = tb.tb_next
+
+
+@pytest.mark.parametrize("bad", [
+    {"t": "health_request", "x": [[1] * 60] * 60},  # many lists
+    {"t": "health_request", "x": list(range(65))},  # a long list
+    {"t": "health_request", "x": {str(i): i for i in range(33)}},  # a big map
+    {"t": "error", "code": "x", "message": "y" * 5000},  # a long string
+])
+def test_containers_and_strings_are_bounded_by_the_catalogue(bad):
+    body = msgpack.packb({"v": 1, **bad}, use_bin_type=True)
+    with pytest.raises(errors.ProtocolError) as caught:
+        decode(body)
+    assert caught.value.code == errors.MALFORMED
+
+
+def test_a_big_frame_header_alone_does_not_allocate_its_body():
+    """A header announcing 4 MiB and a few bytes of body: the reader holds what arrived
+    (rounded up to its small-buffer size), not what was announced."""
+    reader = FrameReader()
+    _feed(reader, struct.pack(">I", 4 << 20) + b"x" * 100)
+    assert len(reader._big) <= FrameReader.SMALL
+    assert reader.partial

@@ -12,6 +12,7 @@ import ssl
 import struct
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 import msgpack
@@ -252,6 +253,34 @@ def test_bad_frames_are_rejected_and_the_daemon_lives_on(services, runner, role,
             assert read_msg(sock) is None  # and the connection is closed
     assert runner.health(role)["role"] == role
     assert_still_serves(runner)
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def test_forty_frames_of_millions_of_tiny_objects_pin_no_memory(services, runner):
+    """Each 4 MiB frame is four million empty maps: the evaluator refuses each while it
+    has decoded a handful, keeps nothing of it, and answers a fresh client at once."""
+    body = b"\xdd" + (4_000_000).to_bytes(4, "big") + b"\x80" * 4_000_000
+    bomb = struct.pack(">I", len(body)) + body
+    socks = []
+    try:
+        for _ in range(40):
+            sock = raw(services.evaluator_addr, services.tls_dir)
+            socks.append(sock)
+            assert hello(sock)["t"] == "capabilities"
+            sock.sendall(bomb)
+            reply = read_msg(sock)
+            assert reply is not None and reply["code"] == errors.MALFORMED
+        assert _rss_mb(services.evaluator.process.pid) < 400
+        assert_still_serves(runner)
+    finally:
+        for sock in socks:
+            sock.close()
 
 
 def test_unknown_circuit_is_refused_per_session(services, runner):

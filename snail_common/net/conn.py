@@ -92,7 +92,7 @@ class Connection(asyncio.BufferedProtocol):
                 self.bytes_in += item[1]
                 self._inbox.put_nowait(item)
         except ProtocolError as exc:
-            self._end(exc)
+            self._end(exc.with_traceback(None))  # kept in the inbox: nothing else with it
             return
         if self._inbox.qsize() >= self._inbox_size and not self._reading_paused:
             self._reading_paused = True

@@ -18,7 +18,7 @@ from typing import Any
 import msgpack
 
 from .errors import MALFORMED, OVERSIZE, VERSION, ProtocolError
-from .messages import validate
+from .messages import MAX_TEXT, validate
 
 PROTOCOL_VERSION = 1
 MAX_FRAME = 4 << 20  # bytes of one frame body; table frames are ~1 MiB
@@ -63,18 +63,56 @@ def encode_bytes(msg: Mapping[str, Any]) -> bytes:
     return b"".join(encode(msg))
 
 
-def _pairs(pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
-    out = dict(pairs)
-    if len(out) != len(pairs):
-        raise ProtocolError(MALFORMED, "a map in the frame repeats a key")
-    return out
+# Bounds from the message catalogue (messages.py): a message is one map of at most a few
+# dozen fields, holding at most a couple of small maps or lists (traffic and timing
+# numbers, family names); bulk data is always one bin field. A frame that needs more is
+# refused by the unpacker while it has built only a few hundred small objects (a 4 MiB
+# frame of four million empty maps used to become ~300 MB of Python objects).
+MAX_CONTAINERS = 8  # maps and lists in one frame
+LIMITS = {"max_map_len": 32, "max_array_len": 64, "max_str_len": 4 * MAX_TEXT,
+          "max_bin_len": MAX_FRAME, "max_ext_len": 0}
+
+
+class _Containers:
+    """unpackb hooks: maps without repeated keys, and at most MAX_CONTAINERS of all."""
+
+    def __init__(self) -> None:
+        self.left = MAX_CONTAINERS
+
+    def _count(self) -> None:
+        self.left -= 1
+        if self.left < 0:
+            raise ProtocolError(MALFORMED, f"frame holds more than {MAX_CONTAINERS} maps "
+                                           f"and lists")
+
+    def pairs(self, pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
+        self._count()
+        out = dict(pairs)
+        if len(out) != len(pairs):
+            raise ProtocolError(MALFORMED, "a map in the frame repeats a key")
+        return out
+
+    def items(self, items: list[Any]) -> list[Any]:
+        self._count()
+        return items
 
 
 def decode(body: bytes | memoryview) -> dict[str, Any]:
-    """A frame body -> the validated message (without ``v``)."""
+    """A frame body -> the validated message (without ``v``). A refusal carries no
+    traceback: a connection keeps its last error, and a traceback would keep what the
+    frame decoded to."""
     try:
-        msg = msgpack.unpackb(body, raw=False, strict_map_key=True, max_ext_len=0,
-                              object_pairs_hook=_pairs)
+        return _decode(body)
+    except ProtocolError as exc:
+        raise exc.with_traceback(None) from None
+
+
+def _decode(body: bytes | memoryview) -> dict[str, Any]:
+    hooks = _Containers()
+    try:
+        msg = msgpack.unpackb(body, raw=False, strict_map_key=True, use_list=True,
+                              object_pairs_hook=hooks.pairs, list_hook=hooks.items,
+                              **LIMITS)
     except ProtocolError:
         raise
     except (ValueError, msgpack.UnpackException) as exc:
@@ -98,10 +136,12 @@ class FrameReader:
     """Incremental decoder for a BufferedProtocol: the transport decrypts straight into
     ``buffer()``, ``filled(n)`` decodes the frames those bytes complete.
 
-    Small frames share one buffer; a larger frame body (garbled tables) gets a dedicated,
-    reused buffer of its exact length once its header is known, so the bytes are written
-    once by TLS and copied once by msgpack. The length is checked before any of the body
-    is accepted, so an oversized frame costs nothing.
+    Small frames share one buffer; a larger frame body (garbled tables) goes to a
+    dedicated, reused buffer, so the bytes are written once by TLS and copied once by
+    msgpack. That buffer grows with the bytes that arrive (doubling, up to the announced
+    length), not with what a header announces: a peer must send what it makes this side
+    hold. The length is checked before any of the body is accepted, so an oversized frame
+    costs nothing.
     """
 
     SMALL = 256 << 10
@@ -124,7 +164,9 @@ class FrameReader:
     def buffer(self) -> memoryview:
         """Where the next received bytes must be written."""
         if self._big_len:
-            return memoryview(self._big)[self._big_pos : self._big_len]
+            if self._big_pos == len(self._big):  # full, the body is not: grow
+                self._grow(min(self._big_len, 2 * len(self._big)))
+            return memoryview(self._big)[self._big_pos : min(self._big_len, len(self._big))]
         if len(self._small) - self._end < self.MIN_FREE:
             n = self._end - self._start
             self._small[:n] = self._small[self._start : self._end]
@@ -159,8 +201,8 @@ class FrameReader:
                     out.append((decode(view[body : body + length]), LENGTH.size + length))
                 self._start = body + length
             elif length > self.BIG:
-                if len(self._big) < length:
-                    self._big = bytearray(length)
+                self._big_pos = 0
+                self._grow(min(length, max(2 * have, self.SMALL)))
                 self._big[:have] = buf[body : self._end]
                 self._big_len, self._big_pos = length, have
                 self._start = self._end = 0
@@ -170,3 +212,11 @@ class FrameReader:
         if self._start == self._end:
             self._start = self._end = 0
         return out
+
+    def _grow(self, size: int) -> None:
+        """Make the body buffer at least ``size`` bytes, keeping what it holds (a new
+        buffer: the transport may still hold a view of the old one)."""
+        if len(self._big) < size:
+            bigger = bytearray(size)
+            bigger[: self._big_pos] = self._big[: self._big_pos]
+            self._big = bigger
