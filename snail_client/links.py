@@ -20,7 +20,12 @@ from snail_common.net.errors import UNEXPECTED, ConnectionClosed, ProtocolError,
 
 
 class ServiceError(Exception):
-    """A secure invocation failed (network, server error, timeout or integrity)."""
+    """A secure invocation failed (network, server error, timeout or integrity);
+    ``code`` is the server's error code when a server refused or failed the session."""
+
+    def __init__(self, message: str, code: str | None = None) -> None:
+        super().__init__(message)
+        self.code = code
 
 
 class Inbox:
@@ -124,7 +129,8 @@ async def labels_and_stats(link: Link, inbox: Inbox, kind: str,
             raise ServiceError(f"{link.where}: {msg}")
         received += size
         if msg["t"] == "error":
-            raise ServiceError(f"{link.where} reported {msg['code']}: {msg['message']}")
+            raise ServiceError(f"{link.where} reported {msg['code']}: {msg['message']}",
+                               msg["code"])
         if msg["t"] == kind:
             try:
                 labels.add(msg)

@@ -23,7 +23,7 @@ from snail_common.loc.problem import PoseVectors, Problem
 from snail_common.pnp.spec import Spec
 
 from .embedded import check_addresses, connected
-from .secure import LINKS, SecureRunner
+from .secure import DEFAULT_BUSY_WAIT, LINKS, SecureRunner
 
 BACKENDS = ("garbled", "cleartext", "float64")
 RESULT_FORMAT = "snail-result/1"
@@ -37,6 +37,7 @@ class Options(PipelineOptions):
     garbler: str | None = None
     evaluator: str | None = None
     tls_dir: str | None = None
+    busy_wait: float = DEFAULT_BUSY_WAIT
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -79,7 +80,8 @@ def backend_for(options: Options) -> Iterator[Backend]:
     elif options.backend == "cleartext":
         yield CircuitBackend()
     else:
-        with connected(options.garbler, options.evaluator, options.tls_dir) as (runner, _):
+        with connected(options.garbler, options.evaluator, options.tls_dir,
+                       busy_wait=options.busy_wait) as (runner, _):
             yield GarbledBackend(runner)
 
 

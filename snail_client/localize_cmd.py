@@ -17,7 +17,7 @@ import numpy as np
 from snail_common.loc.problem import PoseVectors, ProblemError, load_problem, load_sequence
 
 from .localize import BACKENDS, Options, backend_for, localize
-from .secure import ServiceError
+from .secure import DEFAULT_BUSY_WAIT, ServiceError
 
 
 def _options(fn: Callable) -> Callable:
@@ -55,6 +55,10 @@ def _options(fn: Callable) -> Callable:
         click.option("--evaluator", metavar="HOST:PORT", help="Evaluator address."),
         click.option("--tls-dir", type=click.Path(file_okay=False, exists=True),
                      help="Directory with ca.pem, client.pem and client.key."),
+        click.option("--busy-wait", type=click.FloatRange(0, 3600),
+                     default=DEFAULT_BUSY_WAIT, show_default=True, metavar="SECONDS",
+                     help="How long a secure run retries servers that answer busy (at "
+                          "their session limit), with jittered backoff, before failing."),
         click.option("--json", "as_json", is_flag=True,
                      help="Print the snail-result/1 JSON record(s) instead of a summary."),
         click.option("--output", type=click.Path(dir_okay=False, writable=True),
@@ -69,7 +73,8 @@ def _make_options(kw: dict) -> Options:
     try:
         return Options(**{k: kw[k] for k in (
             "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
-            "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations")})
+            "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations",
+            "busy_wait")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 

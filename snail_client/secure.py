@@ -50,13 +50,15 @@ from snail_common.gc import (
 from snail_common.net import messages, tls
 from snail_common.net.chunks import write_labels
 from snail_common.net.conn import connect, new_event_loop, parse_addr
-from snail_common.net.errors import ConnectionClosed, ProtocolError, RemoteError
+from snail_common.net.errors import BUSY, ConnectionClosed, ProtocolError, RemoteError
 
 from .links import Inbox, Link, ServiceError, labels_and_stats
 
 LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
          "evaluator_to_client", "garbler_to_client")
 DEFAULT_TIMEOUT = 300.0
+DEFAULT_BUSY_WAIT = 30.0  # seconds a run retries servers that answer busy
+BACKOFF_FIRST, BACKOFF_MAX = 0.05, 2.0
 DEFAULT_AHEAD = 1  # sessions garbled ahead of need, when the caller says more are coming
 
 
@@ -111,7 +113,8 @@ class AsyncSecureRunner:
 
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
-                 connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD) -> None:
+                 connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
+                 busy_wait: float = DEFAULT_BUSY_WAIT) -> None:
         families.register_all()
         self.garbler_addr = _addr(garbler_addr, "garbler address")
         self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
@@ -120,6 +123,7 @@ class AsyncSecureRunner:
         self.timeout = timeout
         self.connect_timeout = connect_timeout
         self.ahead = ahead
+        self.busy_wait = busy_wait
         self.last: Invocation | None = None
         self.totals = dict.fromkeys(LINKS, 0)
         self.invocations = 0
@@ -162,7 +166,33 @@ class AsyncSecureRunner:
         return (await self.invoke(circuit_id, input_bits)).outputs
 
     async def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
-        """One secure run of ``circuit_id`` on ``input_bits`` (bool, one per input wire)."""
+        """One secure run of ``circuit_id`` on ``input_bits`` (bool, one per input wire).
+
+        A server at its session limit answers ``busy``: the run is retried with a fresh
+        session after a jittered, doubling pause, for up to ``busy_wait`` seconds in all
+        (reported as ``client_busy_wait_s`` in the timing)."""
+        t0 = time.perf_counter()
+        pause = BACKOFF_FIRST
+        while True:
+            try:
+                inv = await self._invoke_once(circuit_id, input_bits)
+            except ServiceError as exc:
+                waited = time.perf_counter() - t0
+                if exc.code != BUSY or waited + pause > self.busy_wait:
+                    if exc.code == BUSY:
+                        raise ServiceError(f"{exc} (retried for {waited:.1f} s, the "
+                                           f"--busy-wait limit is {self.busy_wait:g} s)",
+                                           BUSY) from None
+                    raise
+                await asyncio.sleep(pause * (0.5 + secrets.randbelow(1000) / 1000))
+                pause = min(2 * pause, BACKOFF_MAX)
+                continue
+            waited = time.perf_counter() - t0 - inv.wall_s
+            if waited > 0.001:
+                inv.timing["client_busy_wait_s"] = round(waited, 4)
+            return inv
+
+    async def _invoke_once(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
         t0 = time.perf_counter()
         session = (self._take(circuit_id) or await self._in_flight(circuit_id)
                    or await self._prepare(circuit_id))
@@ -185,7 +215,7 @@ class AsyncSecureRunner:
                 from None
         except (ServiceError, ConnectionClosed) as exc:
             self._cancel(session)
-            raise ServiceError(f"{circuit_id}: {exc}") from None
+            raise ServiceError(f"{circuit_id}: {exc}", getattr(exc, "code", None)) from None
         finally:
             session.garbler.waiting.pop(sid, None)
             session.evaluator.waiting.pop(sid, None)
@@ -329,10 +359,11 @@ class SecureRunner:
 
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
-                 connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD) -> None:
+                 connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
+                 busy_wait: float = DEFAULT_BUSY_WAIT) -> None:
         self._loop = new_event_loop()
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
-                                         connect_timeout, ahead)
+                                         connect_timeout, ahead, busy_wait)
 
     def expect(self, circuit_id: str, count: int) -> None:
         """At least ``count`` invocations of ``circuit_id`` are coming (see the async
