@@ -20,6 +20,8 @@ from snail_common.loc.pipeline import Localized
 from snail_common.loc.pipeline import Options as PipelineOptions
 from snail_common.loc.pipeline import localize as run_pipeline
 from snail_common.loc.problem import PoseVectors, Problem
+from snail_common.loc.reference import reprojection_rms
+from snail_common.loc.trust import DEFAULT_MAX_RMS_PX, assess, degenerate, pose_error
 from snail_common.pnp.spec import Spec
 
 from .embedded import check_addresses, connected
@@ -38,6 +40,7 @@ class Options(PipelineOptions):
     evaluator: str | None = None
     tls_dir: str | None = None
     busy_wait: float = DEFAULT_BUSY_WAIT
+    max_rms_px: float = DEFAULT_MAX_RMS_PX
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -88,20 +91,29 @@ def backend_for(options: Options) -> Iterator[Backend]:
 def localize(problem: Problem, options: Options, backend: Backend,
              initial: PoseVectors | None = None) -> dict:
     """Solve one problem from ``initial`` (default: the file's initial pose) and return
-    its snail-result/1 record."""
+    its snail-result/1 record, whose ``status`` says whether the pose can be trusted.
+    Points that cannot determine a pose get a ``degenerate`` record and no circuit run."""
+    start = initial or problem.initial_pose
+    reason = degenerate(problem)
+    if reason is not None and start is not None:
+        return _degenerate_record(problem, options, start, reason)
     before = backend.traffic()
     result = run_pipeline(problem, options, backend, initial)
     after = backend.traffic()
     return record(result, options, {link: after.get(link, 0) - before.get(link, 0)
-                                    for link in LINKS})
+                                    for link in LINKS}, problem)
 
 
-def record(result: Localized, options: Options, traffic: dict[str, int]) -> dict:
+def record(result: Localized, options: Options, traffic: dict[str, int],
+           problem: Problem) -> dict:
     """The snail-result/1 record of a localized frame."""
+    status, warnings = assess(problem, result.rvec, result.tvec, result.converged,
+                              result.rms_px, options.max_rms_px)
     out = {
         "format": RESULT_FORMAT,
         "rvec": [float(x) for x in result.rvec], "tvec": [float(x) for x in result.tvec],
-        "converged": bool(result.converged), "iterations": result.iterations,
+        "status": status, "warnings": warnings,
+        "converged": status == "converged", "iterations": result.iterations,
         "invocations": result.invocations, "cost": float(result.cost),
         "rms_px": result.rms_px,
         "algorithm": options.algorithm, "mode": options.mode, "solver": options.solver,
@@ -109,8 +121,30 @@ def record(result: Localized, options: Options, traffic: dict[str, int]) -> dict
         "timing": {"total_s": result.total_s, "per_iteration_s": result.walls},
         "traffic": traffic,
     }
+    if problem.reference_pose is not None:
+        out["error"] = pose_error(result.rvec, result.tvec, problem.reference_pose)
     if options.backend != "float64":
         iface = interface(result.spec)
         out["circuit"] = {"and": iface.counts["and"], "xor": iface.counts["xor"],
                           "depth": iface.depth, "points": result.spec.points}
+    return out
+
+
+def _degenerate_record(problem: Problem, options: Options, start: PoseVectors,
+                       reason: str) -> dict:
+    """The record of a frame whose points cannot determine a pose: the starting pose,
+    unrefined, and no secure run (nothing about the frame reached the servers)."""
+    out = {
+        "format": RESULT_FORMAT,
+        "rvec": start.rvec.tolist(), "tvec": start.tvec.tolist(),
+        "status": "degenerate", "warnings": [reason],
+        "converged": False, "iterations": 0, "invocations": 0, "cost": None,
+        "rms_px": reprojection_rms(problem, start.rvec, start.tvec),
+        "algorithm": options.algorithm, "mode": options.mode, "solver": options.solver,
+        "backend": options.backend,
+        "timing": {"total_s": 0.0, "per_iteration_s": []},
+        "traffic": dict.fromkeys(LINKS, 0),
+    }
+    if problem.reference_pose is not None:
+        out["error"] = pose_error(start.rvec, start.tvec, problem.reference_pose)
     return out

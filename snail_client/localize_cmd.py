@@ -14,7 +14,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from snail_common.loc.problem import PoseVectors, ProblemError, load_problem, load_sequence
+from snail_common.loc.problem import PoseVectors, ProblemError, load_problem, read_sequence
+from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
 
 from .localize import BACKENDS, Options, backend_for, localize
 from .secure import DEFAULT_BUSY_WAIT, ServiceError
@@ -55,6 +56,10 @@ def _options(fn: Callable) -> Callable:
         click.option("--evaluator", metavar="HOST:PORT", help="Evaluator address."),
         click.option("--tls-dir", type=click.Path(file_okay=False, exists=True),
                      help="Directory with ca.pem, client.pem and client.key."),
+        click.option("--max-rms-px", type=click.FloatRange(0, min_open=True),
+                     default=DEFAULT_MAX_RMS_PX, show_default=True,
+                     help="A pose whose reprojection RMS is above this is reported as "
+                          "bad_fit (exit 3), not converged."),
         click.option("--busy-wait", type=click.FloatRange(0, 3600),
                      default=DEFAULT_BUSY_WAIT, show_default=True, metavar="SECONDS",
                      help="How long a secure run retries servers that answer busy (at "
@@ -74,7 +79,7 @@ def _make_options(kw: dict) -> Options:
         return Options(**{k: kw[k] for k in (
             "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
             "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations",
-            "busy_wait")})
+            "busy_wait", "max_rms_px")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 
@@ -87,7 +92,7 @@ def _summary(record: dict) -> str:
     walls = record["timing"]["per_iteration_s"]
     pace = (f"; {len(walls)} timed calls, median {float(np.median(walls)):.3f} s, "
             f"first {walls[0]:.3f} s" if walls else "")
-    state = "converged" if record["converged"] else "NOT converged"
+    state = record["status"].replace("_", " ")
     return (f"rvec {np.round(record['rvec'], 6).tolist()}  tvec "
             f"{np.round(record['tvec'], 6).tolist()}\n"
             f"rms {record['rms_px']:.4f} px  {state} after {record['iterations']} iterations "
@@ -102,25 +107,25 @@ def _fail(code: int, message: str) -> None:
     sys.exit(code)
 
 
-def _run(problems: list, options: Options, as_json: bool, output: str | None) -> None:
-    records = []
-    try:
-        with backend_for(options) as backend:
-            previous: PoseVectors | None = None
-            for index, problem in enumerate(problems):
-                record = localize(problem, options, backend, initial=previous)
-                if len(problems) > 1:
-                    record["frame"] = index
-                records.append(record)
-                previous = PoseVectors(np.array(record["rvec"]), np.array(record["tvec"]))
-                click.echo(json.dumps(record) if as_json else _summary(record))
-    except (ProblemError, ValueError) as e:
-        _fail(2, str(e))
-    except ServiceError as e:
-        _fail(1, str(e))
+def _worse(a: int, b: int) -> int:
+    """Exit statuses by weight: a failed run (1) over an untrusted frame (3) over 0."""
+    return 1 if 1 in (a, b) else max(a, b)
+
+
+def _untrusted(record: dict, where: str = "") -> str:
+    """The one stderr line for a pose that came back but is not trusted."""
+    reasons = "; ".join(record["warnings"]) or record["status"]
+    return f"{where}pose not trusted ({record['status']}): {reasons}"
+
+
+def _write(output: str | None, records: list[dict], single: bool) -> None:
     if output:
-        payload = records[0] if len(records) == 1 else records
+        payload = records[0] if single and records else records
         Path(output).write_text(json.dumps(payload, indent=1) + "\n")
+
+
+def _show(record: dict, as_json: bool) -> None:
+    click.echo(json.dumps(record) if as_json else _summary(record))
 
 
 @click.command("localize")
@@ -129,24 +134,81 @@ def _run(problems: list, options: Options, as_json: bool, output: str | None) ->
               help="Problem file (snail-problem/1 JSON).")
 @_options
 def localize_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> None:
-    """Find the camera pose of one image privately."""
+    """Find the camera pose of one image privately.
+
+    Exit status: 0 a trusted pose; 1 the run failed; 2 bad usage or input; 3 a pose came
+    back but is not trusted (status not_converged, degenerate, bad_fit or behind_camera;
+    one line on stderr says why)."""
     options = _make_options(kw)
     try:
         problem = load_problem(input_path)
     except ProblemError as e:
         _fail(2, f"{input_path}: {e}")
-    _run([problem], options, as_json, output)
+    try:
+        with backend_for(options) as backend:
+            record = localize(problem, options, backend)
+    except (ProblemError, ValueError) as e:
+        _fail(2, f"{input_path}: {e}")
+    except ServiceError as e:
+        _fail(1, str(e))
+    _show(record, as_json)
+    _write(output, [record], single=True)
+    if record["status"] != "converged":
+        _fail(3, _untrusted(record))
 
 
 @click.command("track")
 @click.option("--input", "input_path", required=True, type=click.Path(exists=True),
-              help="Sequence: a JSON Lines file or a folder of problem files (name order).")
+              help="Sequence: JSON Lines, a JSON array of problems, one problem, or a "
+                   "folder of problem files (name order).")
+@click.option("--fail-fast", is_flag=True,
+              help="Stop at the first frame that fails or is not trusted.")
 @_options
-def track_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> None:
-    """Localize a sequence, each frame starting from the previous frame's pose."""
+def track_cmd(input_path: str, as_json: bool, output: str | None, fail_fast: bool,
+              **kw) -> None:
+    """Localize a sequence, each frame starting from the previous trusted pose.
+
+    A frame that cannot be read or solved is named on stderr and recorded in the output
+    with its failure; the others go on (unless --fail-fast), and --output always gets
+    what was computed. Exit status: 0 every frame trusted; 1 a secure run failed; 2 the
+    sequence cannot be read; 3 some frame failed or is not trusted."""
     options = _make_options(kw)
     try:
-        problems = load_sequence(input_path)
+        frames = read_sequence(input_path)
     except ProblemError as e:
         _fail(2, f"{input_path}: {e}")
-    _run(problems, options, as_json, output)
+    records: list[dict] = []
+    worst = 0
+    try:
+        with backend_for(options) as backend:
+            previous: PoseVectors | None = None
+            for index, (name, problem) in enumerate(frames):
+                try:
+                    if isinstance(problem, ProblemError):
+                        raise problem
+                    record = localize(problem, options, backend, initial=previous)
+                except (ProblemError, ValueError, ServiceError) as e:
+                    worst = _worse(worst, 1 if isinstance(e, ServiceError) else 3)
+                    click.echo(f"snail-client: frame {index} ({name}): {e}", err=True)
+                    records.append({"frame": index, "input": name, "failure": str(e)})
+                    if fail_fast:
+                        break
+                    continue
+                record.update(frame=index, input=name)
+                records.append(record)
+                _show(record, as_json)
+                if record["status"] == "converged":
+                    previous = PoseVectors(np.array(record["rvec"]), np.array(record["tvec"]))
+                else:
+                    worst = _worse(worst, 3)
+                    click.echo(f"snail-client: frame {index} ({name}): "
+                               f"{_untrusted(record)}", err=True)
+                    if fail_fast:
+                        break
+    except ServiceError as e:  # connecting or closing, outside any frame
+        worst = 1
+        click.echo(f"snail-client: {e}", err=True)
+    finally:
+        _write(output, records, single=False)
+    if worst:
+        sys.exit(worst)

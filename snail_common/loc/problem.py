@@ -159,27 +159,57 @@ def load_problem(path: str | Path) -> Problem:
     return parse_problem(_decode(_read(Path(path))))
 
 
-def _prefixed(where: str, text: str, first: bool) -> Problem:
-    try:
-        return parse_problem(_decode(text), require_initial_pose=first)
-    except ProblemError as exc:
-        raise ProblemError(f"{where}: {exc}") from None
-
-
 def load_sequence(path: str | Path) -> list[Problem]:
-    """A sequence for `track`: a JSON Lines file (blank lines skipped) or a folder of .json
-    problem files in name order. Only the first frame needs an initial pose."""
+    """A sequence for `track` (see ``read_sequence``), refusing it at its first bad frame."""
+    frames = []
+    for _, frame in read_sequence(path):
+        if isinstance(frame, ProblemError):
+            raise frame
+        frames.append(frame)
+    return frames
+
+
+def read_sequence(path: str | Path) -> list[tuple[str, Problem | ProblemError]]:
+    """The frames of a sequence for `track`, each named (``line 3``, a file name,
+    ``[2]``) and parsed on its own, so one bad frame is reported and the others still
+    run: a folder of .json problem files in name order, a JSON array of problems, one
+    (pretty-printed) problem, or JSON Lines (blank lines skipped). Only the first frame
+    needs an initial pose. ProblemError for a sequence that cannot be read at all."""
     path = Path(path)
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.suffix == ".json" and p.is_file())
-        frames = [_prefixed(p.name, _read(p), i == 0) for i, p in enumerate(files)]
+        texts = [(p.name, _read(p)) for p in files]
+        items = [(name, _parse_named(name, text, i == 0)) for i, (name, text)
+                 in enumerate(texts)]
     else:
-        lines = [(no, line) for no, line in enumerate(_read(path).splitlines(), 1)
-                 if line.strip()]
-        frames = [_prefixed(f"line {no}", line, i == 0) for i, (no, line) in enumerate(lines)]
-    if not frames:
+        text = _read(path)
+        try:
+            whole = json.loads(text)
+        except json.JSONDecodeError:
+            whole = None  # JSON Lines, or broken: read line by line
+        if isinstance(whole, list):
+            items = [(f"[{i}]", _parse_named(f"[{i}]", obj, i == 0, parsed=True))
+                     for i, obj in enumerate(whole)]
+        elif isinstance(whole, dict):  # one problem: on one line (JSON Lines) or several
+            name = "line 1" if "\n" not in text.strip() else "problem"
+            items = [(name, _parse_named(name, whole, True, parsed=True))]
+        else:
+            lines = [(no, line) for no, line in enumerate(text.splitlines(), 1)
+                     if line.strip()]
+            items = [(f"line {no}", _parse_named(f"line {no}", line, i == 0))
+                     for i, (no, line) in enumerate(lines)]
+    if not items:
         raise ProblemError(f"{path}: no problems in the sequence")
-    return frames
+    return items
+
+
+def _parse_named(where: str, source: Any, first: bool,
+                 parsed: bool = False) -> Problem | ProblemError:
+    try:
+        obj = source if parsed else _decode(source)
+        return parse_problem(obj, require_initial_pose=first)
+    except ProblemError as exc:
+        return ProblemError(f"{where}: {exc}")
 
 
 def check_in_front(problem: Problem, pose: PoseVectors | None = None) -> None:
