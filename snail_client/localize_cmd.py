@@ -16,6 +16,7 @@ import numpy as np
 
 from snail_common.loc.problem import PoseVectors, ProblemError, load_problem, read_sequence
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
+from snail_common.net.tls import TLSFileError
 
 from .localize import BACKENDS, Options, backend_for, localize
 from .secure import DEFAULT_BUSY_WAIT, ServiceError
@@ -147,6 +148,8 @@ def localize_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> No
     try:
         with backend_for(options) as backend:
             record = localize(problem, options, backend)
+    except TLSFileError as e:
+        _fail(2, f"--tls-dir: {e}")
     except (ProblemError, ValueError) as e:
         _fail(2, f"{input_path}: {e}")
     except ServiceError as e:
@@ -208,6 +211,9 @@ def track_cmd(input_path: str, as_json: bool, output: str | None, fail_fast: boo
     except ServiceError as e:  # connecting or closing, outside any frame
         worst = 1
         click.echo(f"snail-client: {e}", err=True)
+    except TLSFileError as e:
+        worst = 2
+        click.echo(f"snail-client: --tls-dir: {e}", err=True)
     finally:
         _write(output, records, single=False)
     if worst:

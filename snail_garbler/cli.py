@@ -6,7 +6,7 @@ import click
 
 from snail_common import families
 from snail_common.net import tls
-from snail_common.net.cli import address, daemon_options, options_from
+from snail_common.net.cli import address, daemon_options, fail, options_from
 from snail_common.net.conn import format_addr
 from snail_common.net.logs import setup
 from snail_common.net.service import run_daemon
@@ -28,7 +28,7 @@ def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_
         server_ctx = tls.server_context(tls_dir, "garbler")
         client_ctx = tls.client_context(tls_dir, "garbler")
     except (OSError, ValueError) as exc:
-        raise click.UsageError(f"--tls-dir: {exc}") from None
+        fail(2, f"--tls-dir: {exc}")
     families.register_all()
     daemon = GarblerDaemon(options_from(kwargs), setup("garbler", log_level), evaluator,
                            client_ctx)

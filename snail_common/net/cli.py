@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
-from typing import Any
+from pathlib import Path
+from typing import Any, NoReturn
 
 import click
 
@@ -72,3 +74,9 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    workers=kwargs["workers"], max_and_gates=kwargs["max_and_gates"],
                    ahead_bytes=kwargs["ahead_mb"] << 20,
                    lane_window_ms=kwargs["lane_window_ms"], max_lanes=kwargs["max_lanes"])
+
+
+def fail(code: int, message: str) -> NoReturn:
+    """One line on stderr, named after the command, and exit ``code`` (2: usage/input)."""
+    click.echo(f"{Path(sys.argv[0]).name}: {message}", err=True)
+    sys.exit(code)

@@ -112,18 +112,34 @@ def make_certs(directory: str | Path, hosts: Iterable[str] = (),
     return out
 
 
+class TLSFileError(ValueError):
+    """A certificate or key file is missing, unreadable or not what it should be; the
+    message names the file and what to do."""
+
+
+_REMEDY = "create the directory with 'snail-client certs DIR'"
+
+
 def _context(purpose: int, tls_dir: str | Path, role: str) -> ssl.SSLContext:
     if role not in ROLES:
         raise ValueError(f"role must be one of {ROLES}, got {role!r}")
-    for path in (cert_path(tls_dir, role), key_path(tls_dir, role), cert_path(tls_dir, CA)):
+    cert, key, ca = cert_path(tls_dir, role), key_path(tls_dir, role), cert_path(tls_dir, CA)
+    for path in (cert, key, ca):
         if not path.is_file():
-            raise FileNotFoundError(f"TLS file {path} is missing (create the directory with "
-                                    f"'snail-client certs DIR')")
+            raise TLSFileError(f"TLS file {path} is missing ({_REMEDY})")
     ctx = ssl.SSLContext(purpose)
     ctx.minimum_version = ssl.TLSVersion.TLSv1_3
     ctx.maximum_version = ssl.TLSVersion.TLSv1_3
-    ctx.load_cert_chain(cert_path(tls_dir, role), key_path(tls_dir, role))
-    ctx.load_verify_locations(cert_path(tls_dir, CA))
+    try:
+        ctx.load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as exc:
+        raise TLSFileError(f"TLS files {cert} and {key} cannot be used as the {role}'s "
+                           f"certificate and key ({exc.strerror or exc}; {_REMEDY})") from None
+    try:
+        ctx.load_verify_locations(ca)
+    except (OSError, ssl.SSLError) as exc:
+        raise TLSFileError(f"TLS file {ca} cannot be used as the CA certificate "
+                           f"({exc.strerror or exc}; {_REMEDY})") from None
     ctx.verify_mode = ssl.CERT_REQUIRED
     return ctx
 
