@@ -63,7 +63,7 @@ def test_peer_role_comes_from_the_verified_certificate(tls_dir, role):
 
 
 def test_missing_files_are_named(tmp_path):
-    with pytest.raises(FileNotFoundError, match=r"garbler\.pem"):
+    with pytest.raises(tls.TLSFileError, match=r"garbler\.pem is missing"):
         tls.server_context(tmp_path, "garbler")
     with pytest.raises(ValueError, match="role"):
         tls.server_context(tmp_path, "mallory")
