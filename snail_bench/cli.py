@@ -35,9 +35,15 @@ def _emit(report: dict, as_json: bool) -> None:
 SERVICE_POINTS = (6, 12)  # what `service` measures unless --points says otherwise
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
-def main() -> None:
+@click.version_option(package_name="snail", prog_name="snail-bench")
+@click.option("-v", "--verbose", is_flag=True, help="Report each measurement on stderr "
+                                                    "as it finishes.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
+@click.pass_context
+def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
     """Benchmarks and gate counts of snail's circuits and engines."""
     families.register_all()
+    ctx.obj = {"verbose": verbose, "quiet": quiet}
 
 
 @main.command()
@@ -190,8 +196,15 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
         if lane_window_ms is not None and garbler:
             raise click.UsageError("--lane-window-ms sets the embedded daemons; start "
                                    "remote ones with it instead")
+        flags = click.get_current_context().find_object(dict) or {}
+
+        def done(name: str, row: dict) -> None:
+            if flags.get("verbose"):
+                click.echo(f"snail-bench: {name}: median {row['median_s']:.3f} s, first "
+                           f"{row['first_s']:.3f} s", err=True)
+
         report = service_report(specs, repeat, garbler, evaluator, tls_dir, clients,
-                                lane_window_ms)
+                                lane_window_ms, flags.get("quiet", False), done)
     except ServiceError as e:
         click.echo(f"snail-bench: {e}", err=True)
         sys.exit(1)

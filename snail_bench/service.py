@@ -17,11 +17,13 @@ import asyncio
 import secrets
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from snail_client.embedded import connected
+from snail_client.progress import bar
 from snail_client.secure import AsyncSecureRunner, Invocation, SecureRunner
 from snail_common.circuit import registry
 from snail_common.pnp.spec import Spec
@@ -29,14 +31,17 @@ from snail_common.pnp.spec import Spec
 
 def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
                    evaluator: str | None = None, tls_dir: str | None = None,
-                   clients: int = 1, lane_window_ms: float | None = None) -> dict:
+                   clients: int = 1, lane_window_ms: float | None = None,
+                   quiet: bool = True,
+                   on_done: Callable[[str, dict], object] | None = None) -> dict:
     """``{"service": {circuit_id: {...}}}``: per circuit, the first run and ``repeat``
     warm runs (median, min, max wall seconds), bytes per link and server timings of one
     run, and (embedded daemons only) each server's peak RSS so far: a high-water mark
     over the daemon's life, so with several circuits it covers the largest run yet."""
     report: dict[str, dict] = {}
     lanes = () if lane_window_ms is None else ("--lane-window-ms", str(lane_window_ms))
-    with connected(garbler, evaluator, tls_dir, lanes) as (runner, services):
+    with connected(garbler, evaluator, tls_dir, lanes) as (runner, services), \
+            bar(len(specs), "circuits", quiet, "circuit") as progress:
         for spec in specs:
             report[spec.circuit_id] = _measure(runner, spec, repeat)
             if clients > 1:
@@ -45,6 +50,9 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
                 report[spec.circuit_id]["peak_rss_mb"] = {
                     daemon.role: _peak_rss_mb(daemon.process.pid)
                     for daemon in (services.garbler, services.evaluator)}
+            progress.update(1)
+            if on_done is not None:
+                on_done(spec.circuit_id, report[spec.circuit_id])
     return {"service": report}
 
 

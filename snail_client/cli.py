@@ -10,8 +10,17 @@ from snail_common.net.tls import make_certs
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
-def main() -> None:
+@click.version_option(package_name="snail", prog_name="snail-client")
+@click.option("-v", "--verbose", is_flag=True,
+              help="Also say on stderr what each frame cost (secure runs, time, bytes).")
+@click.option("-q", "--quiet", is_flag=True,
+              help="Only results and errors: no summary lines, no progress bars.")
+@click.pass_context
+def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
     """Private camera localization with two non-colluding garbled-circuit servers."""
+    if verbose and quiet:
+        raise click.UsageError("-v and -q: choose one")
+    ctx.obj = {"verbose": verbose, "quiet": quiet}
 
 
 @main.command()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,8 +53,15 @@ class GarbledBackend(CircuitBackend):
     """Circuits garbled between the two servers through the client's secure runner."""
 
     def __init__(self, runner: SecureRunner) -> None:
-        super().__init__(runner.run, "garbled")
+        super().__init__(self._run, "garbled")
         self.secure = runner
+        self.on_invocation: Callable[[], object] | None = None  # e.g. a progress bar
+
+    def _run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
+        out = self.secure.run(circuit_id, bits)
+        if self.on_invocation is not None:
+            self.on_invocation()
+        return out
 
     def expect(self, spec: Spec, count: int) -> None:
         """Garble ahead: the servers start on the frame's invocations before the client
@@ -68,7 +75,7 @@ class GarbledBackend(CircuitBackend):
         while self.invocations < target:
             noise = np.frombuffer(os.urandom(n_inputs), np.uint8) & 1
             self.invocations += 1
-            self.secure.run(spec.registry_id, noise.astype(bool))
+            self._run(spec.registry_id, noise.astype(bool))
 
     def traffic(self) -> dict[str, int]:
         return dict(self.secure.totals)

@@ -6,9 +6,10 @@ Exit status: 0 success (not converging is reported, not a failure), 1 the run fa
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import click
@@ -19,6 +20,7 @@ from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
 from snail_common.net.tls import TLSFileError
 
 from .localize import BACKENDS, Options, backend_for, localize
+from .progress import bar
 from .secure import DEFAULT_BUSY_WAIT, ServiceError
 
 
@@ -125,8 +127,36 @@ def _write(output: str | None, records: list[dict], single: bool) -> None:
         Path(output).write_text(json.dumps(payload, indent=1) + "\n")
 
 
+def _verbosity() -> dict:
+    """The group's -v/-q (neither when a command is run on its own)."""
+    return click.get_current_context().find_object(dict) or {}
+
+
 def _show(record: dict, as_json: bool) -> None:
-    click.echo(json.dumps(record) if as_json else _summary(record))
+    if as_json:
+        click.echo(json.dumps(record))
+    elif not _verbosity().get("quiet"):
+        click.echo(_summary(record))
+    if _verbosity().get("verbose"):
+        t, walls = record["traffic"], record["timing"]["per_iteration_s"]
+        click.echo(f"snail-client: {record['invocations']} secure runs "
+                   f"({len(walls)} timed: {', '.join(f'{w:.3f}' for w in walls)} s), "
+                   f"{record['timing']['total_s']:.2f} s in all, bytes per link {t}",
+                   err=True)
+
+
+@contextlib.contextmanager
+def _progress(backend: object, total: int, desc: str) -> Iterator[None]:
+    """A bar of secure runs on a terminal (a garbled backend reports each one)."""
+    if not hasattr(backend, "on_invocation"):
+        yield
+        return
+    with bar(total, desc, _verbosity().get("quiet", False), unit="run") as b:
+        backend.on_invocation = b.update
+        try:
+            yield
+        finally:
+            backend.on_invocation = None
 
 
 @click.command("localize")
@@ -146,7 +176,8 @@ def localize_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> No
     except ProblemError as e:
         _fail(2, f"{input_path}: {e}")
     try:
-        with backend_for(options) as backend:
+        with backend_for(options) as backend, _progress(
+                backend, max(options.min_invocations, 1), "secure runs"):
             record = localize(problem, options, backend)
     except TLSFileError as e:
         _fail(2, f"--tls-dir: {e}")
@@ -183,9 +214,11 @@ def track_cmd(input_path: str, as_json: bool, output: str | None, fail_fast: boo
     records: list[dict] = []
     worst = 0
     try:
-        with backend_for(options) as backend:
+        with backend_for(options) as backend, bar(
+                len(frames), "frames", _verbosity().get("quiet", False), "frame") as frames_bar:
             previous: PoseVectors | None = None
             for index, (name, problem) in enumerate(frames):
+                frames_bar.update(index - frames_bar.n)
                 try:
                     if isinstance(problem, ProblemError):
                         raise problem

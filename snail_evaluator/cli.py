@@ -6,7 +6,7 @@ import click
 
 from snail_common import families
 from snail_common.net import tls
-from snail_common.net.cli import address, daemon_options, fail, options_from
+from snail_common.net.cli import address, daemon_options, fail, log_level_of, options_from
 from snail_common.net.conn import format_addr
 from snail_common.net.logs import setup
 from snail_common.net.service import run_daemon
@@ -26,7 +26,8 @@ def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> Non
     except (OSError, ValueError) as exc:
         fail(2, f"--tls-dir: {exc}")
     families.register_all()
-    daemon = EvaluatorDaemon(options_from(kwargs), setup("evaluator", log_level))
+    logger = setup("evaluator", log_level_of(log_level, kwargs))
+    daemon = EvaluatorDaemon(options_from(kwargs), logger)
     try:
         run_daemon(daemon, listen, ctx)
     except OSError as exc:  # cannot bind the listening address

@@ -47,3 +47,30 @@ def test_bench_service_measures_6_and_12_unless_asked(monkeypatch):
     out = CliRunner().invoke(bench, ["service", "--json"])
     assert out.exit_code == 0, out.output
     assert asked == [6, 12]
+
+
+def test_every_command_tells_its_version():
+    for module in ("snail_client", "snail_garbler", "snail_evaluator", "snail_bench.cli"):
+        out = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 0 and "version 0.1.0" in out.stdout, (module, out)
+
+
+def test_quiet_keeps_only_results_and_verbose_adds_the_cost():
+    quiet = CliRunner().invoke(client, ["-q", "localize", "--backend", "float64", "--input",
+                                        N6])
+    assert quiet.exit_code == 0 and quiet.stdout == ""
+    loud = CliRunner().invoke(client, ["-v", "localize", "--backend", "float64", "--input",
+                                       N6])
+    assert loud.exit_code == 0 and "rms" in loud.stdout and "secure runs" in loud.stderr
+    both = CliRunner().invoke(client, ["-v", "-q", "localize", "--input", N6])
+    assert both.exit_code == 2
+
+
+def test_progress_bars_only_on_a_terminal(monkeypatch):
+    from snail_client.progress import bar
+
+    assert bar(3, "x").disable  # tests run with stderr captured: no terminal
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    assert not bar(3, "x").disable
+    assert bar(3, "x", quiet=True).disable

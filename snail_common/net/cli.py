@@ -32,8 +32,11 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--tls-dir", required=True,
                      type=click.Path(exists=True, file_okay=False),
                      help="Directory made by 'snail-client certs' (CA and role certs)."),
+        click.version_option(package_name="snail"),
         click.option("--log-level", type=click.Choice(LOG_LEVELS), default="info",
                      show_default=True, help="JSON log lines on stderr from this level."),
+        click.option("-v", "--verbose", is_flag=True, help="Same as --log-level debug."),
+        click.option("-q", "--quiet", is_flag=True, help="Same as --log-level warning."),
         click.option("--max-sessions", type=click.IntRange(1, 100_000),
                      default=defaults.max_sessions, show_default=True,
                      help="Concurrent sessions before new ones are refused as busy."),
@@ -80,3 +83,10 @@ def fail(code: int, message: str) -> NoReturn:
     """One line on stderr, named after the command, and exit ``code`` (2: usage/input)."""
     click.echo(f"{Path(sys.argv[0]).name}: {message}", err=True)
     sys.exit(code)
+
+
+def log_level_of(log_level: str, kwargs: dict[str, Any]) -> str:
+    """--log-level, unless -v or -q says otherwise."""
+    if kwargs.get("verbose") and kwargs.get("quiet"):
+        fail(2, "-v and -q: choose one")
+    return "debug" if kwargs.get("verbose") else "warning" if kwargs.get("quiet") else log_level
