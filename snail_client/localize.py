@@ -53,11 +53,11 @@ class GarbledBackend(CircuitBackend):
     """Circuits garbled between the two servers through the client's secure runner."""
 
     def __init__(self, runner: SecureRunner) -> None:
-        super().__init__(self._run, "garbled")
+        super().__init__(self._secure_run, "garbled")
         self.secure = runner
         self.on_invocation: Callable[[], object] | None = None  # e.g. a progress bar
 
-    def _run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
+    def _secure_run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
         out = self.secure.run(circuit_id, bits)
         if self.on_invocation is not None:
             self.on_invocation()
@@ -75,7 +75,7 @@ class GarbledBackend(CircuitBackend):
         while self.invocations < target:
             noise = np.frombuffer(os.urandom(n_inputs), np.uint8) & 1
             self.invocations += 1
-            self._run(spec.registry_id, noise.astype(bool))
+            self._secure_run(spec.registry_id, noise.astype(bool))
 
     def traffic(self) -> dict[str, int]:
         return dict(self.secure.totals)
