@@ -185,6 +185,8 @@ def localize_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> No
         _fail(2, f"{input_path}: {e}")
     except ServiceError as e:
         _fail(1, str(e))
+    except KeyboardInterrupt:
+        _fail(130, "interrupted")
     _show(record, as_json)
     _write(output, [record], single=True)
     if record["status"] != "converged":
@@ -247,6 +249,10 @@ def track_cmd(input_path: str, as_json: bool, output: str | None, fail_fast: boo
     except TLSFileError as e:
         worst = 2
         click.echo(f"snail-client: --tls-dir: {e}", err=True)
+    except KeyboardInterrupt:
+        worst = 130
+        click.echo(f"snail-client: interrupted after {len(records)} frames (--output keeps "
+                   f"them)", err=True)
     finally:
         _write(output, records, single=False)
     if worst:

@@ -372,17 +372,35 @@ class SecureRunner:
             self._runner.expect(circuit_id, count)
             await asyncio.sleep(0)
 
-        self._loop.run_until_complete(announce())
+        self._complete(announce())
+
+    def _complete(self, coro: Any) -> Any:
+        """Run ``coro`` on this runner's loop. If it is interrupted (Ctrl-C), the tasks it
+        left are cancelled and finished first, so nothing dies half-way with the loop."""
+        try:
+            return self._loop.run_until_complete(coro)
+        except BaseException:
+            self._settle()
+            raise
+
+    def _settle(self) -> None:
+        pending = [t for t in asyncio.all_tasks(self._loop) if not t.done()]
+        for task in pending:
+            task.cancel()
+        if pending:
+            with contextlib.suppress(BaseException):
+                self._loop.run_until_complete(asyncio.gather(*pending,
+                                                             return_exceptions=True))
 
     def run(self, circuit_id: str, input_bits: np.ndarray) -> np.ndarray:
         """Decoded output bits; traffic and time of the run in ``self.last``."""
-        return self._loop.run_until_complete(self._runner.run(circuit_id, input_bits))
+        return self._complete(self._runner.run(circuit_id, input_bits))
 
     def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
-        return self._loop.run_until_complete(self._runner.invoke(circuit_id, input_bits))
+        return self._complete(self._runner.invoke(circuit_id, input_bits))
 
     def health(self, role: str) -> dict[str, Any]:
-        return self._loop.run_until_complete(self._runner.health(role))
+        return self._complete(self._runner.health(role))
 
     @property
     def endpoints(self) -> tuple[tuple[str, int], tuple[str, int], str | Path]:
@@ -406,10 +424,11 @@ class SecureRunner:
         if not self._loop.is_closed():
             with contextlib.suppress(Exception):
                 self._loop.run_until_complete(self._runner.close())
+            self._settle()
             self._loop.close()
 
     def __enter__(self) -> SecureRunner:
-        self._loop.run_until_complete(self._runner.connect())
+        self._complete(self._runner.connect())
         return self
 
     def __exit__(self, *exc: object) -> None:

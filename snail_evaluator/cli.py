@@ -24,11 +24,14 @@ def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> Non
     try:
         ctx = tls.server_context(tls_dir, "evaluator")
     except (OSError, ValueError) as exc:
-        fail(2, f"--tls-dir: {exc}")
+        fail(2, f"--tls-dir: {exc}", "snail-evaluator")
     families.register_all()
     logger = setup("evaluator", log_level_of(log_level, kwargs))
     daemon = EvaluatorDaemon(options_from(kwargs), logger)
     try:
-        run_daemon(daemon, listen, ctx)
+        interrupted = run_daemon(daemon, listen, ctx)
     except OSError as exc:  # cannot bind the listening address
         raise click.ClickException(f"--listen {format_addr(*listen)}: {exc}") from None
+    if interrupted:
+        fail(130, "interrupted: running sessions ended with an error to their peers",
+             "snail-evaluator")

@@ -28,11 +28,14 @@ def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_
         server_ctx = tls.server_context(tls_dir, "garbler")
         client_ctx = tls.client_context(tls_dir, "garbler")
     except (OSError, ValueError) as exc:
-        fail(2, f"--tls-dir: {exc}")
+        fail(2, f"--tls-dir: {exc}", "snail-garbler")
     families.register_all()
     logger = setup("garbler", log_level_of(log_level, kwargs))
     daemon = GarblerDaemon(options_from(kwargs), logger, evaluator, client_ctx)
     try:
-        run_daemon(daemon, listen, server_ctx)
+        interrupted = run_daemon(daemon, listen, server_ctx)
     except OSError as exc:  # cannot bind the listening address
         raise click.ClickException(f"--listen {format_addr(*listen)}: {exc}") from None
+    if interrupted:
+        fail(130, "interrupted: running sessions ended with an error to their peers",
+             "snail-garbler")

@@ -36,6 +36,7 @@ from snail_common.net import messages
 from snail_common.net.chunks import write_labels
 from snail_common.net.conn import Connection, connect
 from snail_common.net.errors import (
+    ABORTED,
     BAD_REQUEST,
     DUPLICATE_SESSION,
     INTERNAL,
@@ -178,6 +179,9 @@ class GarblerDaemon(Daemon):
             self._fail(client, sid, PEER_LOST, f"lost the evaluator: {exc}")
         except TimeoutError as exc:
             self._fail(client, sid, TIMEOUT, str(exc))
+        except asyncio.CancelledError:
+            self._fail(client, sid, ABORTED, "the garbler is shutting down")
+            raise
         except Exception as exc:  # a bug: the client must still hear of it
             self.log.exception("session_bug", extra={"snail_fields": {"sid": sid.hex()}})
             self._fail(client, sid, INTERNAL, f"internal error in the garbler: {exc!r}")

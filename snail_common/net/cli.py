@@ -79,9 +79,9 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    lane_window_ms=kwargs["lane_window_ms"], max_lanes=kwargs["max_lanes"])
 
 
-def fail(code: int, message: str) -> NoReturn:
+def fail(code: int, message: str, prog: str | None = None) -> NoReturn:
     """One line on stderr, named after the command, and exit ``code`` (2: usage/input)."""
-    click.echo(f"{Path(sys.argv[0]).name}: {message}", err=True)
+    click.echo(f"{prog or Path(sys.argv[0]).name}: {message}", err=True)
     sys.exit(code)
 
 

@@ -87,6 +87,7 @@ class Daemon:
                          "rejected": 0}
         self.started = time.monotonic()
         self.stopping = asyncio.Event()
+        self.interrupted = False
 
     # ---- subclass interface ------------------------------------------------------------
     async def serve(self, conn: Connection) -> None:
@@ -189,8 +190,8 @@ class Daemon:
         loop = asyncio.get_running_loop()
         loop.set_exception_handler(self._loop_error)
         sys.setswitchinterval(SWITCH_INTERVAL)
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, self.stopping.set)
+        loop.add_signal_handler(signal.SIGTERM, self.stopping.set)
+        loop.add_signal_handler(signal.SIGINT, self._interrupt)
         _audit_handshakes(ctx, self._refused)
         server = await loop.create_server(
             lambda: Connection(MAX_FRAME, on_open=self._opened), host, port, ssl=ctx,
@@ -202,9 +203,11 @@ class Daemon:
         await self.stopping.wait()
         event(self.log, "shutting_down", active=self.counters["active"])
         server.close()
-        deadline = time.monotonic() + self.options.grace
+        deadline = time.monotonic() + (0 if self.interrupted else self.options.grace)
         while self.counters["active"] and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
+        if self.interrupted:  # sessions end now, each with an error to its peers
+            await self._drain_handlers(timeout=0)
         await self.shutdown_extra()
         await asyncio.gather(*(c.close(messages.make("bye"), timeout=0.5)
                                for c in list(self.connections)), return_exceptions=True)
@@ -214,12 +217,18 @@ class Daemon:
         self.pool.shutdown(wait=False, cancel_futures=True)
         announce(self.log, "stopped", **self.counters)
 
+    def _interrupt(self) -> None:
+        """Ctrl-C: an operator wants the daemon gone: no grace period for sessions."""
+        self.interrupted = True
+        self.stopping.set()
+
     async def _drain_handlers(self, timeout: float) -> None:
         """Let connection handlers log their ends before ``stopped`` (supervisors read
         ``stopped`` as the last word); cancel any that overrun ``timeout``."""
         if not self._tasks:
             return
-        _, late = await asyncio.wait(set(self._tasks), timeout=timeout)
+        _, late = ((set(), set(self._tasks)) if timeout <= 0
+                   else await asyncio.wait(set(self._tasks), timeout=timeout))
         for task in late:
             task.cancel()
         await asyncio.gather(*late, return_exceptions=True)
@@ -255,12 +264,13 @@ def _prepare(circuit_id: str, max_and: int) -> tuple[Circuit, Schedule]:
     return circuit, schedule
 
 
-def run_daemon(daemon: Daemon, listen: tuple[str, int], ctx: ssl.SSLContext) -> None:
+def run_daemon(daemon: Daemon, listen: tuple[str, int], ctx: ssl.SSLContext) -> bool:
     """Run ``daemon`` until it is stopped, on uvloop (asyncio's own loop on Windows,
-    where uvloop does not exist)."""
+    where uvloop does not exist); True if it was interrupted (SIGINT)."""
     if sys.platform == "win32":
         asyncio.run(daemon.run(*listen, ctx))
-        return
+        return daemon.interrupted
     import uvloop
 
     uvloop.run(daemon.run(*listen, ctx))
+    return daemon.interrupted

@@ -1,0 +1,67 @@
+"""Ctrl-C: one line and exit 130, no traceback; a daemon ends its running sessions with
+an error to their peers instead of waiting out its grace period."""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from shared_paths import EXAMPLES
+
+from snail_client.embedded import embedded_services
+from snail_client.secure import AsyncSecureRunner, ServiceError
+from snail_common.circuit import registry
+
+
+def _wait_for(proc: subprocess.Popen, timeout: float = 60) -> None:
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+
+
+def test_ctrl_c_in_the_client_is_one_line_and_exit_130(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "snail_client", "localize", "--input",
+         str(EXAMPLES / "synthetic_n6.json"), "--min-invocations", "10000"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(8)  # the embedded servers are up and runs are under way
+    proc.send_signal(signal.SIGINT)
+    _wait_for(proc)
+    err = proc.stderr.read()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == "snail-client: interrupted"
+
+
+@pytest.mark.parametrize("role", ["garbler", "evaluator"])
+def test_ctrl_c_ends_a_daemons_sessions_with_an_error(tmp_path, role):
+    circuit = "ops/fmul-x4"
+    registry.compiled(circuit)  # compiled here, so the daemons load it from the cache
+    with embedded_services(extra_args=("--grace", "60")) as svc:
+        daemon = svc.garbler if role == "garbler" else svc.evaluator
+
+        async def stalled_session():
+            async with AsyncSecureRunner(svc.garbler_addr, svc.evaluator_addr, svc.tls_dir,
+                                         timeout=30) as r:
+                session = await r._prepare(circuit)  # labels never sent: it stays open
+                await asyncio.sleep(0.5)
+                daemon.process.send_signal(signal.SIGINT)
+                t0 = time.monotonic()
+                with pytest.raises(ServiceError) as caught:
+                    await r._collect(session)
+                return time.monotonic() - t0, str(caught.value)
+
+        waited, message = asyncio.run(stalled_session())
+        _wait_for(daemon.process)
+        assert daemon.process.returncode == 130
+        assert waited < 10  # not the 60 s grace period
+        # the interrupted daemon's own error, or the other server's word that it went
+        assert any(w in message for w in ("shutting down", "aborted", "peer_lost")), message
+        log = daemon.log.read_text()
+        assert "Traceback" not in log
+        assert log.strip().splitlines()[-1].startswith(f"snail-{role}: interrupted")
