@@ -50,7 +50,13 @@ from snail_common.gc import (
 from snail_common.net import messages, tls
 from snail_common.net.chunks import write_labels
 from snail_common.net.conn import connect, new_event_loop, parse_addr
-from snail_common.net.errors import BUSY, ConnectionClosed, ProtocolError, RemoteError
+from snail_common.net.errors import (
+    BUSY,
+    TOO_LARGE,
+    ConnectionClosed,
+    ProtocolError,
+    RemoteError,
+)
 
 from .links import Inbox, Link, ServiceError, labels_and_stats
 
@@ -243,10 +249,17 @@ class AsyncSecureRunner:
         """Ask for a session's garbling now, with fresh secrets."""
         loop = asyncio.get_running_loop()
         try:
-            iface = await loop.run_in_executor(None, registry.interface, circuit_id)
+            registry.check_id(circuit_id)
         except registry.UnknownCircuit as exc:
             raise ServiceError(str(exc)) from None
         garbler, evaluator = await self.connect()
+        limits = [link.conn.info.get("max_and_gates") for link in (garbler, evaluator)]
+        limit = min((x for x in limits if x is not None), default=None)
+        try:  # nothing beyond the servers' limit is built, nor asked of them
+            iface = await loop.run_in_executor(None, registry.interface, circuit_id, limit)
+        except registry.CircuitTooLarge as exc:
+            raise ServiceError(f"{exc}: more than the servers compile (their "
+                               f"--max-and-gates)", TOO_LARGE) from None
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
@@ -379,7 +392,7 @@ class SecureRunner:
         left are cancelled and finished first, so nothing dies half-way with the loop."""
         try:
             return self._loop.run_until_complete(coro)
-        except BaseException:
+        except (KeyboardInterrupt, SystemExit):  # the runner is going: settle its tasks
             self._settle()
             raise
 

@@ -11,7 +11,7 @@ from snail_common.circuit import evaluate, registry
 def private_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("SNAIL_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(registry, "_lru", type(registry._lru)())
-    registry.interface.cache_clear()
+    registry._interface.cache_clear()
 
 
 @pytest.mark.parametrize("bad", [

@@ -123,13 +123,30 @@ def _within(circuit_id: str, hit: tuple[Circuit, Schedule],
     return hit
 
 
-@functools.lru_cache(maxsize=64)
-def interface(circuit_id: str) -> Interface:
+def interface(circuit_id: str, max_and: int | None = None) -> Interface:
     """The client's view of ``circuit_id`` (layout, content hash, size): from a compiled
-    circuit already in memory, else from the cache's sidecar, else built unscheduled."""
+    circuit already in memory, else from the cache's sidecar, else built unscheduled.
+    With ``max_and``, a circuit of more AND gates raises CircuitTooLarge, and a build
+    stops as soon as it crosses the limit (a client asks for no circuit its servers
+    would refuse, and builds none of it beyond their limit)."""
+    iface = _interface(circuit_id, max_and)
+    if max_and is not None and iface.counts["and"] > max_and:
+        raise CircuitTooLarge(f"{circuit_id} has {iface.counts['and']:,} AND gates, more "
+                              f"than {max_and:,}")
+    return iface
+
+
+@functools.lru_cache(maxsize=64)
+def _interface(circuit_id: str, max_and: int | None) -> Interface:
     name, build = _resolve(circuit_id)
     hit = lookup(circuit_id)
-    return hit[0].interface() if hit is not None else cache.cached_interface(name, build)
+    if hit is not None:
+        return hit[0].interface()
+    try:
+        with and_gate_limit(max_and):
+            return cache.cached_interface(name, build)
+    except CircuitTooLarge as exc:
+        raise CircuitTooLarge(f"{circuit_id}: {exc}") from None
 
 
 def lookup(circuit_id: str) -> tuple[Circuit, Schedule] | None:

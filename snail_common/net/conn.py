@@ -93,6 +93,10 @@ class Connection(asyncio.BufferedProtocol):
                 self._inbox.put_nowait(item)
         except ProtocolError as exc:
             self._end(exc.with_traceback(None))  # kept in the inbox: nothing else with it
+            self._frames.release()  # a refused frame's bytes are not kept either
+            if not self._reading_paused and self.transport is not None:
+                self._reading_paused = True
+                self.transport.pause_reading()
             return
         if self._inbox.qsize() >= self._inbox_size and not self._reading_paused:
             self._reading_paused = True

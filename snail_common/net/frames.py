@@ -213,6 +213,10 @@ class FrameReader:
             self._start = self._end = 0
         return out
 
+    def release(self) -> None:
+        """Drop the body buffer (after a refused frame: nothing more will be read)."""
+        self._big, self._big_len, self._big_pos = bytearray(0), 0, 0
+
     def _grow(self, size: int) -> None:
         """Make the body buffer at least ``size`` bytes, keeping what it holds (a new
         buffer: the transport may still hold a view of the old one)."""

@@ -119,7 +119,8 @@ circuit = text(128)
 SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "hello": ({"role": one_of(ROLES), "software": text(64), "max_frame": count}, {}),
     "capabilities": ({"role": one_of(ROLES), "software": text(64), "max_frame": count,
-                      "families": text_list, "max_sessions": count}, {}),
+                      "families": text_list, "max_sessions": count},
+                     {"max_and_gates": count}),
     "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash}, {}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
                         "delta": key16, "key": key16}, {}),

@@ -101,7 +101,8 @@ class Daemon:
     def capabilities(self) -> dict[str, Any]:
         return messages.make("capabilities", role=self.role, software=SOFTWARE,
                              max_frame=MAX_FRAME, families=list(registry.families()),
-                             max_sessions=self.options.max_sessions)
+                             max_sessions=self.options.max_sessions,
+                             max_and_gates=self.options.max_and_gates)
 
     def health(self) -> dict[str, Any]:
         sessions = dict(self.counters, connections=len(self.connections))
