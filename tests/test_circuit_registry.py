@@ -97,3 +97,20 @@ def test_a_cached_circuit_over_the_limit_is_refused(monkeypatch):
     with pytest.raises(registry.CircuitTooLarge, match="has 3,624 AND gates"):
         registry.compiled("ops/fmul-x4", max_and=1000)  # loaded from disk
     assert registry.lookup("ops/fmul-x4") is None
+
+
+def test_an_interface_over_the_limit_is_refused_without_building_it(tmp_path, monkeypatch):
+    """What a client asks of servers that compile at most 100,000 AND gates: the n=256
+    circuit (15 M AND gates, gigabytes to build) stops as soon as it crosses the limit."""
+    import tracemalloc
+
+    monkeypatch.setenv("SNAIL_CACHE_DIR", str(tmp_path))
+    tracemalloc.start()
+    try:
+        with pytest.raises(registry.CircuitTooLarge, match="100,000"):
+            registry.interface("loc/lm-sil-ldlt-n256", max_and=100_000)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 300 << 20, f"built {peak >> 20} MiB of a circuit it refuses"
+    assert not list(tmp_path.glob("*.interface.json"))
