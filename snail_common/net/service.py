@@ -118,12 +118,18 @@ class Daemon:
         return await self.submit(fn, *args)
 
     async def circuit(self, circuit_id: str, content_hash: str) -> tuple[Circuit, Schedule]:
-        """The compiled circuit (once per daemon) whose hash must equal the peer's."""
+        """The compiled circuit (once per daemon) whose hash must equal the peer's. An
+        uncompiled circuit's hash is checked on its interface (the netlist, unscheduled,
+        within the AND limit) before anything is scheduled or cached: a request naming
+        a circuit with a wrong hash costs no compile."""
         try:
             ready = registry.lookup(circuit_id)  # the common case: no thread hop
             if ready is not None and self._planned.get(circuit_id) == id(ready[1]):
                 circuit, schedule = ready
             else:
+                iface = await self.work(registry.interface, circuit_id,
+                                        self.options.max_and_gates)
+                _same_hash(circuit_id, iface.content_hash, content_hash)
                 circuit, schedule = await self.work(_prepare, circuit_id,
                                                     self.options.max_and_gates)
                 self._planned[circuit_id] = id(schedule)
@@ -132,10 +138,7 @@ class Daemon:
         except registry.CircuitTooLarge as exc:
             raise ProtocolError(TOO_LARGE, f"{exc} (this {self.role}'s --max-and-gates)") \
                 from None
-        if circuit.content_hash() != content_hash:
-            raise ProtocolError(CIRCUIT_MISMATCH, f"circuit {circuit_id} has content hash "
-                                                  f"{circuit.content_hash()[:16]}... here, "
-                                                  f"the peer has {content_hash[:16]}...")
+        _same_hash(circuit_id, circuit.content_hash(), content_hash)
         return circuit, schedule
 
     def admit(self) -> None:
@@ -256,6 +259,13 @@ def _audit_handshakes(ctx: ssl.SSLContext, refused: Callable[[ssl.SSLError], Non
                 raise
 
     ctx.sslobject_class = AuditedSSLObject
+
+
+def _same_hash(circuit_id: str, ours: str, theirs: str) -> None:
+    if ours != theirs:
+        raise ProtocolError(CIRCUIT_MISMATCH, f"circuit {circuit_id} has content hash "
+                                              f"{ours[:16]}... here, the peer has "
+                                              f"{theirs[:16]}...")
 
 
 def _prepare(circuit_id: str, max_and: int) -> tuple[Circuit, Schedule]:
