@@ -144,7 +144,8 @@ class EvaluatorDaemon(Daemon):
     async def _serve_client(self, conn: Connection) -> None:
         try:
             while True:
-                msg, _ = await conn.recv()
+                msg, _ = await self.next_message(
+                    conn, lambda: any(s.client is conn for s in self.sessions.values()))
                 kind = msg["t"]
                 if kind == "session_start":
                     await self._client_start(conn, msg)
@@ -206,7 +207,8 @@ class EvaluatorDaemon(Daemon):
     # ---- the garbler side ------------------------------------------------------------------
     async def _serve_garbler(self, conn: Connection) -> None:
         while True:
-            msg, size = await conn.recv()  # idle between sessions: no timeout
+            # idle between sessions (a pooled connection): closed after --idle-timeout
+            msg, size = await self.next_message(conn, lambda: False)
             kind = msg["t"]
             if kind == "session_start":
                 await self._garbler_session(conn, msg, size)

@@ -89,7 +89,7 @@ class GarblerDaemon(Daemon):
         tasks: dict[bytes, asyncio.Task] = {}
         try:
             while True:
-                msg, _ = await conn.recv()
+                msg, _ = await self.next_message(conn, lambda: bool(tasks))
                 kind = msg["t"]
                 if kind == "garble_request":
                     self._start(conn, msg, tasks)

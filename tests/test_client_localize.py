@@ -75,7 +75,7 @@ def test_the_garbled_client_never_holds_a_netlist(runner, monkeypatch):
 
     monkeypatch.setattr(registry, "compiled", refuse)
     monkeypatch.setattr(registry, "lookup", lambda _: None)  # no netlist in memory to use
-    registry.interface.cache_clear()
+    registry._interface.cache_clear()
     problem = load_problem(EXAMPLES / "synthetic_n12.json")
     result = localize(problem, Options(backend="garbled", min_invocations=0), runner)
     assert result["converged"] and result["circuit"]["and"] > 0

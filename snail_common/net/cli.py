@@ -63,6 +63,11 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                           "circuit is under way, so a lone client never does; 0: off."),
         click.option("--max-lanes", type=click.IntRange(1, 256), default=defaults.max_lanes,
                      show_default=True, help="Most sessions in one lane batch."),
+        click.option("--idle-timeout", type=click.FloatRange(0.1, 86400),
+                     default=defaults.idle_timeout, show_default=True,
+                     help="Seconds a connection may stay silent with no session under way "
+                          "before it is closed. A frame, once begun, must arrive within "
+                          "--session-timeout."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
                      show_default=True,
                      help="Seconds SIGTERM waits for running sessions to finish."),
@@ -76,7 +81,8 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    session_timeout=kwargs["session_timeout"], grace=kwargs["grace"],
                    workers=kwargs["workers"], max_and_gates=kwargs["max_and_gates"],
                    ahead_bytes=kwargs["ahead_mb"] << 20,
-                   lane_window_ms=kwargs["lane_window_ms"], max_lanes=kwargs["max_lanes"])
+                   lane_window_ms=kwargs["lane_window_ms"], max_lanes=kwargs["max_lanes"],
+                   idle_timeout=kwargs["idle_timeout"])
 
 
 def fail(code: int, message: str, prog: str | None = None) -> NoReturn:

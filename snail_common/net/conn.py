@@ -23,7 +23,14 @@ from collections.abc import Callable
 from typing import Any
 
 from . import messages
-from .errors import FORBIDDEN, UNEXPECTED, ConnectionClosed, ProtocolError, RemoteError
+from .errors import (
+    FORBIDDEN,
+    TIMEOUT,
+    UNEXPECTED,
+    ConnectionClosed,
+    ProtocolError,
+    RemoteError,
+)
 from .frames import MAX_FRAME, FrameReader, encode
 from .tls import peer_role
 
@@ -54,8 +61,11 @@ class Connection(asyncio.BufferedProtocol):
     """
 
     def __init__(self, max_frame: int = MAX_FRAME, inbox: int = INBOX,
-                 on_open: Callable[[Connection], None] | None = None) -> None:
+                 on_open: Callable[[Connection], None] | None = None,
+                 frame_timeout: float | None = None) -> None:
         self.peer_role = ""  # from the certificate, once connected
+        self.frame_timeout = frame_timeout  # a begun frame must be complete within this
+        self._frame_timer: asyncio.TimerHandle | None = None
         self.peer: Any = None
         self.info: dict[str, Any] = {}  # the peer's hello or capabilities
         self.bytes_in = 0
@@ -88,9 +98,11 @@ class Connection(asyncio.BufferedProtocol):
 
     def buffer_updated(self, nbytes: int) -> None:
         try:
-            for item in self._frames.filled(nbytes):
+            done = self._frames.filled(nbytes)
+            for item in done:
                 self.bytes_in += item[1]
                 self._inbox.put_nowait(item)
+            self._watch_frame(bool(done))
         except ProtocolError as exc:
             self._end(exc.with_traceback(None))  # kept in the inbox: nothing else with it
             self._frames.release()  # a refused frame's bytes are not kept either
@@ -102,12 +114,35 @@ class Connection(asyncio.BufferedProtocol):
             self._reading_paused = True
             self.transport.pause_reading()
 
+    def _watch_frame(self, completed: bool) -> None:
+        """Time a begun frame from its first bytes: a peer that announces a frame and
+        then trickles it (or stops) loses the connection after ``frame_timeout``."""
+        if self.frame_timeout is None:
+            return
+        if self._frame_timer is not None and (completed or not self._frames.partial):
+            self._frame_timer.cancel()
+            self._frame_timer = None
+        if self._frame_timer is None and self._frames.partial:
+            self._frame_timer = asyncio.get_running_loop().call_later(
+                self.frame_timeout, self._frame_late)
+
+    def _frame_late(self) -> None:
+        self._frame_timer = None
+        self._end(ProtocolError(TIMEOUT, f"a frame begun {self.frame_timeout:g} s ago is "
+                                         f"still incomplete"))
+        self._frames.release()
+        if self.transport is not None:
+            self.transport.abort()
+
     def eof_received(self) -> bool:
         self._end(ConnectionClosed(f"the {self.peer_role or 'peer'} closed the connection"
                                    + (" mid-frame" if self._frames.partial else "")))
         return False
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if self._frame_timer is not None:
+            self._frame_timer.cancel()
+            self._frame_timer = None
         reason = f": {exc}" if exc else ""
         self._lost = ConnectionClosed(f"the connection to the {self.peer_role or 'peer'} "
                                       f"was lost{reason}")

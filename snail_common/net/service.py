@@ -33,6 +33,7 @@ from .errors import (
     BUSY,
     CIRCUIT_MISMATCH,
     INTERNAL,
+    TIMEOUT,
     TOO_LARGE,
     UNKNOWN_CIRCUIT,
     ConnectionClosed,
@@ -68,6 +69,8 @@ class Options:
     # session waits for the window only while another run of its circuit is under way
     lane_window_ms: float = 10.0
     max_lanes: int = 16
+    # a connection with no session and no message for this long is closed
+    idle_timeout: float = 300.0
 
 
 class Daemon:
@@ -141,6 +144,18 @@ class Daemon:
         _same_hash(circuit_id, circuit.content_hash(), content_hash)
         return circuit, schedule
 
+    async def next_message(self, conn: Connection,
+                           busy: Callable[[], bool]) -> tuple[dict[str, Any], int]:
+        """The next message on a served connection; ProtocolError (timeout) once it has
+        been silent for ``idle_timeout`` with nothing of its own under way (``busy``)."""
+        while True:
+            try:
+                return await conn.recv(self.options.idle_timeout)
+            except TimeoutError:
+                if not busy():
+                    raise ProtocolError(TIMEOUT, f"idle for {self.options.idle_timeout:g} "
+                                                 f"s: closing the connection") from None
+
     def admit(self) -> None:
         """Count a new session, or refuse it when the daemon is full or stopping."""
         if self.stopping.is_set():
@@ -198,7 +213,9 @@ class Daemon:
         loop.add_signal_handler(signal.SIGINT, self._interrupt)
         _audit_handshakes(ctx, self._refused)
         server = await loop.create_server(
-            lambda: Connection(MAX_FRAME, on_open=self._opened), host, port, ssl=ctx,
+            lambda: Connection(MAX_FRAME, on_open=self._opened,
+                               frame_timeout=self.options.session_timeout),
+            host, port, ssl=ctx,
             ssl_handshake_timeout=self.options.handshake_timeout)
         announce(self.log, "listening", host=host, port=server.sockets[0].getsockname()[1],
                  pid=os.getpid(), max_sessions=self.options.max_sessions,

@@ -1,0 +1,60 @@
+"""Server-side timeouts: a silent connection with nothing under way is closed after
+--idle-timeout; a frame, once begun, must arrive within --session-timeout."""
+
+from __future__ import annotations
+
+import contextlib
+import struct
+import time
+
+import numpy as np
+import pytest
+from test_service_e2e import hello, raw, read_msg
+
+from snail_client.embedded import embedded_services
+from snail_client.secure import SecureRunner
+from snail_common.circuit import evaluate_bits, registry
+from snail_common.net import errors
+
+
+@pytest.fixture(scope="module")
+def services(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache")
+    with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)},
+                           extra_args=("--idle-timeout", "1", "--session-timeout", "2")) as svc:
+        yield svc
+
+
+@pytest.mark.parametrize("role", ["garbler", "evaluator"])
+def test_a_silent_connection_is_closed_with_a_reason(services, role):
+    addr = services.garbler_addr if role == "garbler" else services.evaluator_addr
+    with contextlib.closing(raw(addr, services.tls_dir)) as sock:
+        assert hello(sock)["t"] == "capabilities"
+        t0 = time.monotonic()
+        reply = read_msg(sock)
+        assert reply is not None and reply["code"] == errors.TIMEOUT and "idle" in reply["message"]
+        assert read_msg(sock) is None  # then closed
+        assert time.monotonic() - t0 < 8
+
+
+def test_a_frame_announced_and_never_sent_loses_the_connection(services):
+    with contextlib.closing(raw(services.evaluator_addr, services.tls_dir)) as sock:
+        assert hello(sock)["t"] == "capabilities"
+        sock.sendall(struct.pack(">I", 1 << 20) + b"x" * 100)
+        t0 = time.monotonic()
+        with contextlib.suppress(ConnectionError, OSError):
+            while read_msg(sock) is not None:
+                pass
+        assert time.monotonic() - t0 < 8
+
+
+def test_a_client_idle_between_frames_reconnects(services):
+    circuit = "ops/fmul-x4"
+    _, schedule = registry.compiled(circuit)
+    bits = np.random.default_rng(2).random(schedule.n_inputs) < 0.5
+    with SecureRunner(services.garbler_addr, services.evaluator_addr, services.tls_dir,
+                      timeout=30) as runner:
+        want = evaluate_bits(schedule, bits[None])[0]
+        np.testing.assert_array_equal(runner.run(circuit, bits), want)
+        time.sleep(2.5)  # both servers close the idle links meanwhile
+        np.testing.assert_array_equal(runner.run(circuit, bits), want)
