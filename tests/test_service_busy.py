@@ -5,8 +5,8 @@ import asyncio
 
 import numpy as np
 import pytest
+from daemons import daemons_with
 
-from snail_client.embedded import embedded_services
 from snail_client.secure import AsyncSecureRunner, ServiceError
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net.errors import BUSY
@@ -16,10 +16,7 @@ CIRCUIT = "ops/fmul-x4"
 
 @pytest.fixture(scope="module")
 def services(tmp_path_factory):
-    cache = tmp_path_factory.mktemp("cache")
-    with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)},
-                           extra_args=("--max-sessions", "1", "--lane-window-ms", "0")) as svc:
-        yield svc
+    yield from daemons_with(tmp_path_factory, "--max-sessions", "1", "--lane-window-ms", "0")
 
 
 def _fleet(services, rows, busy_wait):

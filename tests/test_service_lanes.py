@@ -5,8 +5,8 @@ import asyncio
 
 import numpy as np
 import pytest
+from daemons import daemons_with
 
-from snail_client.embedded import embedded_services
 from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import evaluate_bits, registry
 
@@ -15,10 +15,7 @@ CIRCUIT = "ops/fmul-x4"
 
 @pytest.fixture(scope="module")
 def services(tmp_path_factory):
-    cache = tmp_path_factory.mktemp("cache")
-    with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)},
-                           extra_args=("--lane-window-ms", "300", "--max-lanes", "8")) as svc:
-        yield svc
+    yield from daemons_with(tmp_path_factory, "--lane-window-ms", "300", "--max-lanes", "8")
 
 
 def test_concurrent_clients_share_a_pass_and_get_their_own_results(services):

@@ -9,9 +9,9 @@ import time
 
 import numpy as np
 import pytest
+from daemons import daemons_with
 from test_service_e2e import hello, raw, read_msg
 
-from snail_client.embedded import embedded_services
 from snail_client.secure import SecureRunner
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net import errors
@@ -19,10 +19,7 @@ from snail_common.net import errors
 
 @pytest.fixture(scope="module")
 def services(tmp_path_factory):
-    cache = tmp_path_factory.mktemp("cache")
-    with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)},
-                           extra_args=("--idle-timeout", "1", "--session-timeout", "2")) as svc:
-        yield svc
+    yield from daemons_with(tmp_path_factory, "--idle-timeout", "1", "--session-timeout", "2")
 
 
 @pytest.mark.parametrize("role", ["garbler", "evaluator"])
