@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from snail_common.net.tls import make_certs
+from snail_common.net.tls import TLSFileError, add_client, make_certs
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,12 +30,28 @@ def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
                    "127.0.0.1 and ::1 are always included.")
 @click.option("--days", type=click.IntRange(1, 3650), default=365, show_default=True,
               help="Validity of the certificates.")
-def certs(directory: Path, hosts: tuple[str, ...], days: int) -> None:
+@click.option("--client", "client_name", metavar="NAME",
+              help="Instead: add a client certificate NAME.pem/NAME.key, issued by the CA "
+                   "already in DIRECTORY (one per device, so each can be revoked by listing "
+                   "NAME in the servers' revoked.txt).")
+def certs(directory: Path, hosts: tuple[str, ...], days: int,
+          client_name: str | None) -> None:
     """Create a CA and TLS certificates for garbler, evaluator and client in DIRECTORY.
 
     Give each server its own certificate and key plus ca.pem, and the client
-    client.pem/client.key plus ca.pem; keep ca.key offline.
+    client.pem/client.key plus ca.pem; keep ca.key offline. The servers refuse
+    certificates named (or fingerprinted) in revoked.txt of their TLS directory, which
+    they reread on SIGHUP.
     """
+    if client_name is not None:
+        try:
+            path = add_client(directory, client_name, days)
+        except TLSFileError as exc:
+            raise click.UsageError(f"DIRECTORY: {exc}") from None
+        except ValueError as exc:
+            raise click.UsageError(f"--client: {exc}") from None
+        click.echo(f"wrote client certificate {path} and its key")
+        return
     if directory.exists() and any(directory.glob("*.key")):
         raise click.UsageError(f"DIRECTORY: {directory} already holds keys; choose an empty "
                                "directory")

@@ -138,14 +138,15 @@ def check_addresses(garbler: str | None, evaluator: str | None,
 @contextlib.contextmanager
 def connected(garbler: str | None = None, evaluator: str | None = None,
               tls_dir: str | None = None, daemon_args: tuple[str, ...] = (),
-              busy_wait: float = DEFAULT_BUSY_WAIT,
+              busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
               ) -> Iterator[tuple[SecureRunner, Services | None]]:
     """A runner for the servers at these addresses, or for embedded ones started for the
     block with ``daemon_args`` (yielded too, so a caller can watch them; None for remote
     servers)."""
     check_addresses(garbler, evaluator, tls_dir)
     if garbler:
-        with SecureRunner(garbler, evaluator, tls_dir, busy_wait=busy_wait) as runner:
+        with SecureRunner(garbler, evaluator, tls_dir, busy_wait=busy_wait,
+                          cert_name=cert_name) as runner:
             yield runner, None
         return
     with embedded_services(extra_args=daemon_args) as services, SecureRunner(

@@ -41,6 +41,7 @@ class Options(PipelineOptions):
     tls_dir: str | None = None
     busy_wait: float = DEFAULT_BUSY_WAIT
     max_rms_px: float = DEFAULT_MAX_RMS_PX
+    cert_name: str = "client"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -91,7 +92,7 @@ def backend_for(options: Options) -> Iterator[Backend]:
         yield CircuitBackend()
     else:
         with connected(options.garbler, options.evaluator, options.tls_dir,
-                       busy_wait=options.busy_wait) as (runner, _):
+                       busy_wait=options.busy_wait, cert_name=options.cert_name) as (runner, _):
             yield GarbledBackend(runner)
 
 

@@ -58,7 +58,10 @@ def _options(fn: Callable) -> Callable:
                      help="Garbler address (default: start both servers on loopback)."),
         click.option("--evaluator", metavar="HOST:PORT", help="Evaluator address."),
         click.option("--tls-dir", type=click.Path(file_okay=False, exists=True),
-                     help="Directory with ca.pem, client.pem and client.key."),
+                     help="Directory with ca.pem and the client certificate and key."),
+        click.option("--cert-name", default="client", show_default=True, metavar="NAME",
+                     help="Client certificate to use from --tls-dir (NAME.pem, NAME.key), "
+                          "e.g. one made by 'snail-client certs DIR --client NAME'."),
         click.option("--max-rms-px", type=click.FloatRange(0, min_open=True),
                      default=DEFAULT_MAX_RMS_PX, show_default=True,
                      help="A pose whose reprojection RMS is above this is reported as "
@@ -82,7 +85,7 @@ def _make_options(kw: dict) -> Options:
         return Options(**{k: kw[k] for k in (
             "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
             "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations",
-            "busy_wait", "max_rms_px")})
+            "busy_wait", "max_rms_px", "cert_name")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 

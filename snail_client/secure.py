@@ -120,12 +120,12 @@ class AsyncSecureRunner:
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
-                 busy_wait: float = DEFAULT_BUSY_WAIT) -> None:
+                 busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client") -> None:
         families.register_all()
         self.garbler_addr = _addr(garbler_addr, "garbler address")
         self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
         self.tls_dir = tls_dir
-        self.ctx = tls.client_context(tls_dir, "client")
+        self.ctx = tls.client_context(tls_dir, "client", cert_name)
         self.timeout = timeout
         self.connect_timeout = connect_timeout
         self.ahead = ahead
@@ -373,10 +373,10 @@ class SecureRunner:
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
-                 busy_wait: float = DEFAULT_BUSY_WAIT) -> None:
+                 busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client") -> None:
         self._loop = new_event_loop()
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
-                                         connect_timeout, ahead, busy_wait)
+                                         connect_timeout, ahead, busy_wait, cert_name)
 
     def expect(self, circuit_id: str, count: int) -> None:
         """At least ``count`` invocations of ``circuit_id`` are coming (see the async

@@ -21,13 +21,13 @@ from .daemon import EvaluatorDaemon
 def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> None:
     """Evaluator daemon: evaluates the garbler's table stream on each client's active input
     labels and returns the active output labels (see snail_evaluator.daemon)."""
+    logger = setup("evaluator", log_level_of(log_level, kwargs))
     try:
         ctx = tls.server_context(tls_dir, "evaluator")
+        daemon = EvaluatorDaemon(options_from({**kwargs, "tls_dir": tls_dir}), logger)
     except (OSError, ValueError) as exc:
         fail(2, f"--tls-dir: {exc}", "snail-evaluator")
     families.register_all()
-    logger = setup("evaluator", log_level_of(log_level, kwargs))
-    daemon = EvaluatorDaemon(options_from(kwargs), logger)
     try:
         interrupted = run_daemon(daemon, listen, ctx)
     except OSError as exc:  # cannot bind the listening address

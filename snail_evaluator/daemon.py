@@ -24,6 +24,7 @@ client always gets an ``error`` naming what happened, and the session is freed (
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -38,6 +39,7 @@ from snail_common.net.conn import Connection
 from snail_common.net.errors import (
     ABORTED,
     BAD_REQUEST,
+    BUSY,
     DUPLICATE_SESSION,
     PEER_LOST,
     STREAM,
@@ -47,6 +49,7 @@ from snail_common.net.errors import (
     ProtocolError,
 )
 from snail_common.net.logs import event
+from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
 
 from .lanes import EvalLane, LaneBatcher, Solo
@@ -66,6 +69,17 @@ class Session:
     failure: ProtocolError | None = None
     started: float = field(default_factory=time.monotonic)
     watchdog: asyncio.TimerHandle | None = None
+    peer: str = ""  # the client's certificate name, once its half has arrived
+    n_and: int = 0
+    bytes_in: int = 0
+    bytes_out: int = 0
+
+    def record(self, outcome: str, reason: str = "") -> dict:
+        """This session's log line fields (see Daemon.log_session)."""
+        return {"sid": self.sid, "circuit": self.circuit, "n_and": self.n_and,
+                "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
+                "seconds": time.monotonic() - self.started, "outcome": outcome,
+                "reason": reason}
 
 
 class EvaluatorDaemon(Daemon):
@@ -75,7 +89,6 @@ class EvaluatorDaemon(Daemon):
     def __init__(self, options: Options, logger: logging.Logger) -> None:
         super().__init__(options, logger)
         self.sessions: dict[bytes, Session] = {}
-        self.ahead_buffered = 0  # table bytes held for sessions still awaiting labels
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
 
     async def serve(self, conn: Connection) -> None:
@@ -92,11 +105,20 @@ class EvaluatorDaemon(Daemon):
             event(self.log, "peer_gone", peer=str(conn.peer), peer_role=conn.peer_role,
                   reason=str(exc))
 
+    @property
+    def ahead_buffered(self) -> int:
+        """Table bytes held for sessions still awaiting labels (the queued_bytes gauge)."""
+        return self.counters["queued_bytes"]
+
+    @ahead_buffered.setter
+    def ahead_buffered(self, value: int) -> None:
+        self.counters["queued_bytes"] = value
+
     # ---- session bookkeeping ---------------------------------------------------------------
-    def _open(self, msg: dict[str, Any]) -> Session:
-        self.admit()
+    def _open(self, msg: dict[str, Any], size: int, peer: str = "") -> Session:
+        self.admit(peer)
         s = Session(msg["sid"], msg["circuit"], msg["hash"],
-                    asyncio.get_running_loop().create_future())
+                    asyncio.get_running_loop().create_future(), peer=peer, bytes_in=size)
         s.ready.add_done_callback(_consume)
         self.sessions[s.sid] = s
         return s
@@ -125,14 +147,11 @@ class EvaluatorDaemon(Daemon):
             s.ready.set_exception(exc)
         if s.client is not None:
             s.client.post(messages.error(exc.code, exc.message, s.sid))
-        self.finish(False)
-        event(self.log, "session_failed", logging.WARNING, sid=s.sid, circuit=s.circuit,
-              code=exc.code, reason=exc.message,
-              seconds=round(time.monotonic() - s.started, 4))
+        self.finish(s.peer, s.record(exc.code, exc.message))
 
     def _complete(self, s: Session) -> None:
         del self.sessions[s.sid]
-        self.finish(True)
+        self.finish(s.peer, s.record(OK))
 
     def _check_same(self, s: Session, msg: dict[str, Any]) -> None:
         if (msg["circuit"], msg["hash"]) != (s.circuit, s.hash):
@@ -144,13 +163,13 @@ class EvaluatorDaemon(Daemon):
     async def _serve_client(self, conn: Connection) -> None:
         try:
             while True:
-                msg, _ = await self.next_message(
+                msg, size = await self.next_message(
                     conn, lambda: any(s.client is conn for s in self.sessions.values()))
                 kind = msg["t"]
                 if kind == "session_start":
-                    await self._client_start(conn, msg)
+                    await self._client_start(conn, msg, size)
                 elif kind == "input_labels":
-                    self._client_labels(conn, msg)
+                    self._client_labels(conn, msg, size)
                 elif kind == "error" and "sid" in msg:
                     s = self.sessions.get(msg["sid"])
                     if s is not None and s.client is conn:
@@ -166,36 +185,45 @@ class EvaluatorDaemon(Daemon):
             for s in [s for s in self.sessions.values() if s.client is conn]:
                 self._fail(s, ProtocolError(ABORTED, "the client disconnected"))
 
-    async def _client_start(self, conn: Connection, msg: dict[str, Any]) -> None:
+    async def _client_start(self, conn: Connection, msg: dict[str, Any], size: int) -> None:
         sid = msg["sid"]
         try:
             s = self.sessions.get(sid)
             if s is None:
-                s = self._open(msg)
+                s = self._open(msg, size, conn.peer_name)
             elif s.client is not None:
                 raise ProtocolError(DUPLICATE_SESSION, "session id already in use")
             else:
                 self._check_same(s, msg)
+                self.claim(conn.peer_name)  # the garbler's half came first
+                s.peer = conn.peer_name
+                s.bytes_in += size
             s.client = conn
         except ProtocolError as exc:
             conn.post(messages.error(exc.code, exc.message, sid))
+            if exc.code == BUSY:
+                self.log_session(peer=conn.peer_name, sid=sid, circuit=msg["circuit"],
+                                 n_and=0, bytes_in=size, bytes_out=0, seconds=0.0,
+                                 outcome=exc.code, reason=exc.message)
             return
         try:
             _, schedule = await self.circuit(msg["circuit"], msg["hash"])
         except ProtocolError as exc:
             self._fail(s, exc)
             return
+        s.n_and = schedule.n_and
         if s.failure is None:
             s.labels = LabelAssembler("input_labels", FIRST_INPUT + schedule.n_inputs)
             self._arm(s)
 
-    def _client_labels(self, conn: Connection, msg: dict[str, Any]) -> None:
+    def _client_labels(self, conn: Connection, msg: dict[str, Any], size: int) -> None:
         s = self.sessions.get(msg["sid"])
         if s is None or s.client is not conn:
             conn.post(messages.error(UNEXPECTED, "input labels for no session of yours "
                                                  "(never started, failed or finished)",
                                      msg["sid"]))
             return
+        s.bytes_in += size
         try:
             s.labels.add(msg)
         except ProtocolError as exc:
@@ -224,9 +252,12 @@ class EvaluatorDaemon(Daemon):
         sid = msg["sid"]
         s = self.sessions.get(sid)
         if s is None:
-            s = self._open(msg)  # the garbler came first; ProtocolError (busy) closes conn
+            # the garbler came first; ProtocolError (busy) closes conn
+            s = self._open(msg, size)
         elif s.garbler:
             raise ProtocolError(DUPLICATE_SESSION, "session id already streaming")
+        else:
+            s.bytes_in += size
         s.garbler = True
         t0 = time.monotonic()
         try:
@@ -253,20 +284,19 @@ class EvaluatorDaemon(Daemon):
             raise
         if s.failure is not None:  # cancelled while the last frame was evaluated
             raise ProtocolError(s.failure.code, s.failure.message)
-        self._complete(s)
-        conn.write(messages.make("done", sid=sid))
-        event(self.log, "session_done", sid=sid, circuit=s.circuit,
-              seconds=round(time.monotonic() - s.started, 4), garbler_to_evaluator=received)
+        s.bytes_out += conn.write(messages.make("done", sid=sid))
         try:
-            write_labels(s.client, "output_labels", sid, outputs)
-            s.client.write(messages.make(
+            s.bytes_out += write_labels(s.client, "output_labels", sid, outputs)
+            s.bytes_out += s.client.write(messages.make(
                 "stats", sid=sid, traffic={"garbler_to_evaluator": received,
                                            "garbled_ahead": ahead},
                 timing={"wait_s": t_labels - t0, "evaluate_s": t_done - t_labels,
                         "lanes": float(ev.lanes)}))
-            await s.client.drain()
         except ConnectionClosed:
             pass  # the client left after its labels arrived: nobody to tell
+        self._complete(s)
+        with contextlib.suppress(ConnectionClosed):
+            await s.client.drain()
         await conn.drain()
 
     async def _evaluate(self, conn: Connection, s: Session,
@@ -311,6 +341,7 @@ class EvaluatorDaemon(Daemon):
                 msg, size = await recv
                 recv = None
                 received += size
+                s.bytes_in += size
                 if s.failure is not None:
                     raise ProtocolError(s.failure.code, s.failure.message)
                 if msg["t"] == "error":

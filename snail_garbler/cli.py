@@ -24,14 +24,15 @@ def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_
          **kwargs) -> None:
     """Garbler daemon: garbles circuits from each client's seed and offset and streams the
     tables to the evaluator (see snail_garbler.daemon)."""
+    logger = setup("garbler", log_level_of(log_level, kwargs))
     try:
         server_ctx = tls.server_context(tls_dir, "garbler")
         client_ctx = tls.client_context(tls_dir, "garbler")
+        daemon = GarblerDaemon(options_from({**kwargs, "tls_dir": tls_dir}), logger,
+                               evaluator, client_ctx)
     except (OSError, ValueError) as exc:
         fail(2, f"--tls-dir: {exc}", "snail-garbler")
     families.register_all()
-    logger = setup("garbler", log_level_of(log_level, kwargs))
-    daemon = GarblerDaemon(options_from(kwargs), logger, evaluator, client_ctx)
     try:
         interrupted = run_daemon(daemon, listen, server_ctx)
     except OSError as exc:  # cannot bind the listening address

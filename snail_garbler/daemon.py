@@ -48,6 +48,7 @@ from snail_common.net.errors import (
     RemoteError,
 )
 from snail_common.net.logs import event
+from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
 
 from .lanes import LaneBatcher, LaneView
@@ -89,10 +90,10 @@ class GarblerDaemon(Daemon):
         tasks: dict[bytes, asyncio.Task] = {}
         try:
             while True:
-                msg, _ = await self.next_message(conn, lambda: bool(tasks))
+                msg, size = await self.next_message(conn, lambda: bool(tasks))
                 kind = msg["t"]
                 if kind == "garble_request":
-                    self._start(conn, msg, tasks)
+                    self._start(conn, msg, size, tasks)
                 elif kind == "error" and "sid" in msg:
                     task = tasks.get(msg["sid"])
                     if task is not None:
@@ -115,26 +116,31 @@ class GarblerDaemon(Daemon):
                 task.cancel()
             await asyncio.gather(*tasks.values(), return_exceptions=True)
 
-    def _start(self, conn: Connection, req: dict[str, Any],
+    def _start(self, conn: Connection, req: dict[str, Any], size: int,
                tasks: dict[bytes, asyncio.Task]) -> None:
         sid = req["sid"]
         if sid in tasks:
             conn.post(messages.error(DUPLICATE_SESSION, "session id already in use", sid))
             return
-        task = asyncio.get_running_loop().create_task(self._session(conn, req))
+        task = asyncio.get_running_loop().create_task(self._session(conn, req, size))
         tasks[sid] = task
         task.add_done_callback(lambda _: tasks.pop(sid, None))
 
-    async def _session(self, client: Connection, req: dict[str, Any]) -> None:
-        sid, t0 = req["sid"], time.monotonic()
-        ok, sent, running = False, 0, False
+    async def _session(self, client: Connection, req: dict[str, Any], size: int) -> None:
+        sid, t0, peer = req["sid"], time.monotonic(), client.peer_name
+        record = {"sid": sid, "circuit": req["circuit"], "n_and": 0, "bytes_in": size,
+                  "bytes_out": 0, "seconds": 0.0, "outcome": OK}
         try:
-            self.admit()  # here, not in _start: a task cancelled unstarted holds no slot
+            self.admit(peer)  # here, not in _start: a task cancelled unstarted holds no slot
         except ProtocolError as exc:
             self._fail(client, sid, exc.code, exc.message)
+            self.log_session(peer=peer, **record | {"outcome": exc.code,
+                                                    "reason": exc.message})
             return
+        sent, running = 0, False
         try:
             _, schedule = await self.circuit(req["circuit"], req["hash"])
+            record["n_and"] = schedule.n_and
             try:
                 check_delta(req["delta"])
             except ValueError as exc:
@@ -158,7 +164,7 @@ class GarblerDaemon(Daemon):
                 finally:
                     self.counters["streaming"] -= 1
                 t_streamed = time.monotonic()
-                delivered = self._reply(client, sid, garbler, sent, {
+                replied = self._reply(client, sid, garbler, sent, {
                     "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
                     "lanes": float(getattr(garbler, "lanes", 1))})
                 if not answered:  # the client need not wait for this
@@ -167,47 +173,53 @@ class GarblerDaemon(Daemon):
                 evaluator.abort()
                 raise
             self._release(evaluator)
-            ok = True
-            if delivered:
+            if replied:
                 with contextlib.suppress(ConnectionClosed):
                     await client.drain()
         except ProtocolError as exc:
-            self._fail(client, sid, exc.code, exc.message)
+            record.update(self._fail(client, sid, exc.code, exc.message))
         except RemoteError as exc:
-            self._fail(client, sid, exc.code, f"the evaluator reported: {exc.message}")
+            record.update(self._fail(client, sid, exc.code,
+                                     f"the evaluator reported: {exc.message}"))
         except ConnectionClosed as exc:
-            self._fail(client, sid, PEER_LOST, f"lost the evaluator: {exc}")
+            record.update(self._fail(client, sid, PEER_LOST, f"lost the evaluator: {exc}"))
         except TimeoutError as exc:
-            self._fail(client, sid, TIMEOUT, str(exc))
+            record.update(self._fail(client, sid, TIMEOUT, str(exc)))
         except asyncio.CancelledError:
-            self._fail(client, sid, ABORTED, "the garbler is shutting down")
+            record.update(self._fail(client, sid, ABORTED, "the garbler is shutting down"))
             raise
         except Exception as exc:  # a bug: the client must still hear of it
             self.log.exception("session_bug", extra={"snail_fields": {"sid": sid.hex()}})
-            self._fail(client, sid, INTERNAL, f"internal error in the garbler: {exc!r}")
+            record.update(self._fail(client, sid, INTERNAL,
+                                     f"internal error in the garbler: {exc!r}"))
+        else:
+            record["bytes_out"] = replied
         finally:
             if running:
                 self.lanes.release(req["circuit"])
-            self.finish(ok)
-            event(self.log, "session_done" if ok else "session_failed", sid=sid,
-                  circuit=req["circuit"], seconds=round(time.monotonic() - t0, 4),
-                  garbler_to_evaluator=sent)
+            record["bytes_out"] += sent
+            record["seconds"] = time.monotonic() - t0
+            self.finish(peer, record)
 
     def _reply(self, client: Connection, sid: bytes, garbler: Garbler | LaneView, sent: int,
-               timing: dict[str, float]) -> bool:
-        """Queue the output zero-labels and stats for the client; False if it is gone."""
+               timing: dict[str, float]) -> int:
+        """Queue the output zero-labels and stats for the client; the bytes queued (0 if
+        it is gone)."""
         try:
-            write_labels(client, "output_zero_labels", sid, garbler.output_zero_labels)
-            client.write(messages.make("stats", sid=sid,
-                                       traffic={"garbler_to_evaluator": sent}, timing=timing))
+            return (write_labels(client, "output_zero_labels", sid,
+                                 garbler.output_zero_labels)
+                    + client.write(messages.make("stats", sid=sid,
+                                                 traffic={"garbler_to_evaluator": sent},
+                                                 timing=timing)))
         except ConnectionClosed:
             event(self.log, "client_gone", sid=sid, reason="before its result was sent")
-            return False
-        return True
+            return 0
 
-    def _fail(self, client: Connection, sid: bytes, code: str, message: str) -> None:
-        event(self.log, "session_error", logging.WARNING, sid=sid, code=code, reason=message)
+    @staticmethod
+    def _fail(client: Connection, sid: bytes, code: str, message: str) -> dict[str, str]:
+        """Tell the client its session failed; the session record's outcome."""
         client.post(messages.error(code, message, sid))
+        return {"outcome": code, "reason": message}
 
     async def _stream(self, evaluator: Connection, garbler: Garbler | LaneView,
                       req: dict[str, Any]) -> tuple[int, bool]:

@@ -58,8 +58,8 @@ def test_peer_role_comes_from_the_verified_certificate(tls_dir, role):
                 side.do_handshake()
         s_in.write(c_out.read())
         c_in.write(s_out.read())
-    assert tls.peer_role(s) == role
-    assert tls.peer_role(c) == "evaluator"
+    assert tls.peer_identity(s).role == role
+    assert tls.peer_identity(c).role == "evaluator"
 
 
 def test_missing_files_are_named(tmp_path):

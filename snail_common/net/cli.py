@@ -68,6 +68,17 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Seconds a connection may stay silent with no session under way "
                           "before it is closed. A frame, once begun, must arrive within "
                           "--session-timeout."),
+        click.option("--max-sessions-per-peer", type=click.IntRange(1, 100_000),
+                     default=defaults.max_sessions_per_peer, show_default=True,
+                     help="Concurrent sessions one client certificate name may hold "
+                          "(clients sharing a certificate share it); more are busy."),
+        click.option("--max-connections-per-peer", type=click.IntRange(1, 100_000),
+                     default=defaults.max_connections_per_peer, show_default=True,
+                     help="Open connections one client certificate name may hold."),
+        click.option("--metrics", callback=address, metavar="HOST:PORT",
+                     help="Serve /metrics (Prometheus text) and /health (JSON) over HTTPS "
+                          "with this daemon's certificate (no client certificate needed: "
+                          "counts only). Default: off."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
                      show_default=True,
                      help="Seconds SIGTERM waits for running sessions to finish."),
@@ -82,7 +93,10 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    workers=kwargs["workers"], max_and_gates=kwargs["max_and_gates"],
                    ahead_bytes=kwargs["ahead_mb"] << 20,
                    lane_window_ms=kwargs["lane_window_ms"], max_lanes=kwargs["max_lanes"],
-                   idle_timeout=kwargs["idle_timeout"])
+                   idle_timeout=kwargs["idle_timeout"],
+                   max_sessions_per_peer=kwargs["max_sessions_per_peer"],
+                   max_connections_per_peer=kwargs["max_connections_per_peer"],
+                   tls_dir=kwargs["tls_dir"], metrics=kwargs["metrics"])
 
 
 def fail(code: int, message: str, prog: str | None = None) -> NoReturn:

@@ -32,7 +32,7 @@ from .errors import (
     RemoteError,
 )
 from .frames import MAX_FRAME, FrameReader, encode
-from .tls import peer_role
+from .tls import Identity, peer_identity
 
 SOFTWARE = "snail/0.1"
 WRITE_HIGH = 4 << 20  # drain() waits while more than this is buffered for sending
@@ -64,6 +64,7 @@ class Connection(asyncio.BufferedProtocol):
                  on_open: Callable[[Connection], None] | None = None,
                  frame_timeout: float | None = None) -> None:
         self.peer_role = ""  # from the certificate, once connected
+        self.identity: Identity | None = None
         self.frame_timeout = frame_timeout  # a begun frame must be complete within this
         self._frame_timer: asyncio.TimerHandle | None = None
         self.peer: Any = None
@@ -81,13 +82,19 @@ class Connection(asyncio.BufferedProtocol):
         self._on_open = on_open
         self.transport: asyncio.Transport | None = None
 
+    @property
+    def peer_name(self) -> str:
+        """The peer's certificate name (a client's own name, else its role)."""
+        return self.identity.name if self.identity is not None else ""
+
     # ---- asyncio protocol callbacks --------------------------------------------------------
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
         self.peer = transport.get_extra_info("peername")
         transport.set_write_buffer_limits(high=WRITE_HIGH)  # type: ignore[attr-defined]
         try:
-            self.peer_role = peer_role(transport.get_extra_info("ssl_object"))
+            self.identity = peer_identity(transport.get_extra_info("ssl_object"))
+            self.peer_role = self.identity.role
         except ValueError:
             self.peer_role = ""  # accept() refuses it
         if self._on_open is not None:

@@ -1,10 +1,16 @@
 """What both daemons share: the TLS listener, connection opening, compiled circuits, the
-worker pool, session bookkeeping, health, structured logs and graceful shutdown.
+worker pool, session bookkeeping with per-peer quotas, revocation, health and metrics,
+structured logs and graceful shutdown.
 
 CPU work (compiling, garbling, evaluating) runs in a thread pool: numpy and AES release
 the GIL, and the event loop stays free for other sessions, TLS and health requests.
 SIGTERM/SIGINT stop accepting, let running sessions finish for up to ``grace`` seconds,
-then say ``bye`` to every peer and exit.
+then say ``bye`` to every peer and exit. SIGHUP rereads ``revoked.txt`` and drops the
+connections of peers it now lists.
+
+Every session ends with one JSON log line ``{"event": "session", "peer", "circuit",
+"and", "bytes_in", "bytes_out", "seconds", "outcome"}`` (outcome ``ok`` or an error code),
+and the same numbers feed the counters of ``health`` and ``--metrics``.
 """
 
 from __future__ import annotations
@@ -17,9 +23,11 @@ import signal
 import ssl
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 from snail_common.circuit import registry
@@ -33,6 +41,7 @@ from .errors import (
     BUSY,
     CIRCUIT_MISMATCH,
     INTERNAL,
+    REVOKED,
     TIMEOUT,
     TOO_LARGE,
     UNKNOWN_CIRCUIT,
@@ -42,6 +51,9 @@ from .errors import (
 )
 from .frames import MAX_FRAME
 from .logs import announce, event
+from .metrics import OK, Metrics
+from .scrape import scrape_context, serve_scrapes
+from .tls import TLSFileError, read_revoked
 
 T = TypeVar("T")
 # workers hold the GIL between numpy calls; a short switch interval lets the event loop
@@ -71,6 +83,12 @@ class Options:
     max_lanes: int = 16
     # a connection with no session and no message for this long is closed
     idle_timeout: float = 300.0
+    # fairness between clients, by certificate name (clients sharing a certificate share
+    # these); the garbler's links to the evaluator are not counted
+    max_sessions_per_peer: int = 32
+    max_connections_per_peer: int = 64
+    tls_dir: str | None = None  # where revoked.txt is read from (at start and on SIGHUP)
+    metrics: tuple[str, int] | None = None  # HTTPS endpoint for /metrics and /health
 
 
 class Daemon:
@@ -86,8 +104,10 @@ class Daemon:
         self.connections: set[Connection] = set()
         self._tasks: set[asyncio.Task] = set()
         self._planned: dict[str, int] = {}  # circuit id -> id() of the planned schedule
-        self.counters = {"active": 0, "streaming": 0, "done": 0, "failed": 0,
-                         "rejected": 0}
+        self.metrics = Metrics(self.role)
+        self.counters = self.metrics.gauges  # active, streaming, connections, queued_bytes
+        self._peer_sessions: Counter[str] = Counter()
+        self.revoked = read_revoked(options.tls_dir) if options.tls_dir else frozenset()
         self.started = time.monotonic()
         self.stopping = asyncio.Event()
         self.interrupted = False
@@ -108,9 +128,13 @@ class Daemon:
                              max_and_gates=self.options.max_and_gates)
 
     def health(self) -> dict[str, Any]:
-        sessions = dict(self.counters, connections=len(self.connections))
-        return messages.make("health", role=self.role, sessions=sessions,
+        self.counters["connections"] = len(self.connections)
+        return messages.make("health", role=self.role, sessions=self.metrics.health(),
                              uptime_s=round(time.monotonic() - self.started, 3))
+
+    def prometheus(self) -> str:
+        self.counters["connections"] = len(self.connections)
+        return self.metrics.prometheus()
 
     def submit(self, fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
         """Start CPU work in the pool now."""
@@ -156,18 +180,48 @@ class Daemon:
                     raise ProtocolError(TIMEOUT, f"idle for {self.options.idle_timeout:g} "
                                                  f"s: closing the connection") from None
 
-    def admit(self) -> None:
-        """Count a new session, or refuse it when the daemon is full or stopping."""
+    def admit(self, peer: str = "") -> None:
+        """Count a new session (of client ``peer``, if known), or refuse it as busy when
+        the daemon is full or stopping, or the peer holds its quota."""
         if self.stopping.is_set():
             raise ProtocolError(BUSY, f"the {self.role} is shutting down")
         if self.counters["active"] >= self.options.max_sessions:
             raise ProtocolError(BUSY, f"the {self.role} runs its maximum of "
                                       f"{self.options.max_sessions} sessions")
+        if peer:
+            self.claim(peer)
         self.counters["active"] += 1
 
-    def finish(self, ok: bool) -> None:
+    def claim(self, peer: str) -> None:
+        """Count a session against client ``peer``'s quota (BUSY beyond it)."""
+        if self._peer_sessions[peer] >= self.options.max_sessions_per_peer:
+            raise ProtocolError(BUSY, f"{peer} runs its maximum of "
+                                      f"{self.options.max_sessions_per_peer} sessions on "
+                                      f"the {self.role} (--max-sessions-per-peer)")
+        self._peer_sessions[peer] += 1
+
+    def finish(self, peer: str, record: dict[str, Any]) -> None:
+        """Free an admitted session and log its line (see ``log_session``)."""
         self.counters["active"] -= 1
-        self.counters["done" if ok else "failed"] += 1
+        if peer:
+            self._peer_sessions[peer] -= 1
+            if self._peer_sessions[peer] <= 0:
+                del self._peer_sessions[peer]
+        self.log_session(peer=peer, **record)
+
+    def log_session(self, *, peer: str, sid: bytes, circuit: str, n_and: int,
+                    bytes_in: int, bytes_out: int, seconds: float, outcome: str,
+                    reason: str = "") -> None:
+        """The one JSON line per session, and the counters it adds to."""
+        self.metrics.session_ended(outcome, n_and, bytes_in, bytes_out, seconds)
+        fields: dict[str, Any] = {"peer": peer, "sid": sid, "circuit": circuit,
+                                  "and": n_and, "bytes_in": bytes_in,
+                                  "bytes_out": bytes_out, "seconds": round(seconds, 4),
+                                  "outcome": outcome}
+        if reason:
+            fields["reason"] = reason
+        event(self.log, "session", logging.INFO if outcome == OK else logging.WARNING,
+              **fields)
 
     # ---- listener ------------------------------------------------------------------------
     def _opened(self, conn: Connection) -> None:
@@ -178,22 +232,42 @@ class Daemon:
 
     def _refused(self, exc: ssl.SSLError) -> None:
         """A TLS handshake failed (no or foreign certificate, TLS < 1.3 ...)."""
-        self.counters["rejected"] += 1
+        self.metrics.refused["tls"] += 1
         event(self.log, "tls_refused", logging.WARNING, reason=str(exc))
+
+    def _refusal(self, conn: Connection) -> ProtocolError | None:
+        """Why a verified peer may not connect now: revoked, or over its quota."""
+        identity = conn.identity
+        if identity is None:
+            return None
+        if identity.revoked_by(self.revoked):
+            return ProtocolError(REVOKED, f"certificate {identity.name} "
+                                          f"({identity.fingerprint[:16]}...) is revoked")
+        quota = self.options.max_connections_per_peer
+        if identity.role == "client" and sum(
+                c.peer_name == identity.name for c in self.connections) >= quota:
+            return ProtocolError(BUSY, f"{identity.name} holds its maximum of {quota} "
+                                       f"connections (--max-connections-per-peer)")
+        return None
 
     async def _on_connect(self, conn: Connection) -> None:
         peer = str(conn.peer)
         try:
+            refusal = self._refusal(conn)
+            if refusal is not None:
+                await conn.close(messages.error(refusal.code, refusal.message))
+                raise refusal
             await accept(conn, self.capabilities(), self.allowed,
                          self.options.handshake_timeout)
         except (ProtocolError, RemoteError, ConnectionClosed, TimeoutError) as exc:
-            self.counters["rejected"] += 1
+            self.metrics.refused[getattr(exc, "code", "handshake")] += 1
             event(self.log, "connection_rejected", logging.WARNING, peer=peer,
-                  reason=str(exc))
+                  peer_name=conn.peer_name, reason=str(exc))
             return
         self.connections.add(conn)
-        event(self.log, "connection_open", peer=peer, peer_role=conn.peer_role)
         try:
+            event(self.log, "connection_open", peer=peer, peer_role=conn.peer_role,
+                  peer_name=conn.peer_name)
             await self.serve(conn)
         except Exception as exc:  # a bug must not take the daemon down: report and drop
             self.log.exception("connection_error", extra={"snail_fields": {"peer": peer}})
@@ -202,7 +276,7 @@ class Daemon:
             self.connections.discard(conn)
             await conn.close()
             event(self.log, "connection_closed", peer=peer, peer_role=conn.peer_role,
-                  bytes_in=conn.bytes_in, bytes_out=conn.bytes_out)
+                  peer_name=conn.peer_name, bytes_in=conn.bytes_in, bytes_out=conn.bytes_out)
 
     async def run(self, host: str, port: int, ctx: ssl.SSLContext) -> None:
         """Listen until SIGTERM/SIGINT, then shut down gracefully."""
@@ -211,6 +285,8 @@ class Daemon:
         sys.setswitchinterval(SWITCH_INTERVAL)
         loop.add_signal_handler(signal.SIGTERM, self.stopping.set)
         loop.add_signal_handler(signal.SIGINT, self._interrupt)
+        if hasattr(signal, "SIGHUP"):
+            loop.add_signal_handler(signal.SIGHUP, self.reload_revoked)
         _audit_handshakes(ctx, self._refused)
         server = await loop.create_server(
             lambda: Connection(MAX_FRAME, on_open=self._opened,
@@ -220,8 +296,11 @@ class Daemon:
         announce(self.log, "listening", host=host, port=server.sockets[0].getsockname()[1],
                  pid=os.getpid(), max_sessions=self.options.max_sessions,
                  max_and_gates=self.options.max_and_gates,
-                 workers=self.options.workers)
+                 workers=self.options.workers, revoked=len(self.revoked))
+        scrapes = await self._serve_metrics()
         await self.stopping.wait()
+        if scrapes is not None:
+            scrapes.close()
         event(self.log, "shutting_down", active=self.counters["active"])
         server.close()
         deadline = time.monotonic() + (0 if self.interrupted else self.options.grace)
@@ -236,7 +315,37 @@ class Daemon:
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(server.wait_closed(), 1.0)
         self.pool.shutdown(wait=False, cancel_futures=True)
-        announce(self.log, "stopped", **self.counters)
+        announce(self.log, "stopped", **self.metrics.health())
+
+    async def _serve_metrics(self) -> asyncio.AbstractServer | None:
+        if self.options.metrics is None or self.options.tls_dir is None:
+            return None
+        host, port = self.options.metrics
+        server = await serve_scrapes(host, port,
+                                     scrape_context(self.options.tls_dir, self.role),
+                                     self.prometheus, self.health)
+        announce(self.log, "metrics", host=host, port=server.sockets[0].getsockname()[1])
+        return server
+
+    def reload_revoked(self) -> None:
+        """SIGHUP: reread revoked.txt; connections of peers it now lists are dropped."""
+        if self.options.tls_dir is None:
+            return
+        try:
+            self.revoked = read_revoked(Path(self.options.tls_dir))
+        except TLSFileError as exc:  # keep the old list rather than admit everyone
+            event(self.log, "revocations_unreadable", logging.ERROR, reason=str(exc))
+            return
+        dropped = [c for c in self.connections
+                   if c.identity is not None and c.identity.revoked_by(self.revoked)]
+        loop = asyncio.get_running_loop()
+        for conn in dropped:
+            task = loop.create_task(conn.close(messages.error(
+                REVOKED, f"certificate {conn.peer_name} was revoked"), timeout=0.5))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+        announce(self.log, "revocations_reloaded", revoked=len(self.revoked),
+                 dropped=len(dropped))
 
     def _interrupt(self) -> None:
         """Ctrl-C: an operator wants the daemon gone: no grace period for sessions."""

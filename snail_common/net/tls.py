@@ -6,19 +6,27 @@
 
 The role is the certificate's common name (``snail garbler`` etc. under organization
 ``snail``); only certificates signed by the CA are accepted, so a peer cannot claim a role
-it has no certificate for. Servers require a client certificate; clients verify the server
-name against the SAN (localhost, 127.0.0.1, ::1 and any extra hosts) and check that the
-server has the role they meant to reach, so a client never sends its seed to the evaluator
-by a swapped address.
+it has no certificate for. ``add_client(dir, name)`` issues a further client certificate
+``name.pem``/``name.key`` whose organizational unit carries the name: daemons log it, count
+quotas by it and refuse it once ``revoked.txt`` in their TLS directory lists it (by name
+or SHA-256 fingerprint; reloaded on SIGHUP).
+
+Servers require a client certificate; clients verify the server name against the SAN
+(localhost, 127.0.0.1, ::1 and any extra hosts) and check that the server has the role
+they meant to reach, so a client never sends its seed to the evaluator by a swapped
+address.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import ipaddress
 import os
+import re
 import ssl
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 from cryptography import x509
@@ -33,6 +41,8 @@ _ORG = "snail"
 _PREFIX = "snail "
 VALID_DAYS = 365
 DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
+REVOKED = "revoked.txt"
+CLIENT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
 
 def cert_path(tls_dir: str | Path, name: str) -> Path:
@@ -43,9 +53,11 @@ def key_path(tls_dir: str | Path, name: str) -> Path:
     return Path(tls_dir) / f"{name}.key"
 
 
-def _name(common: str) -> x509.Name:
-    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, _ORG),
-                      x509.NameAttribute(NameOID.COMMON_NAME, common)])
+def _name(common: str, unit: str | None = None) -> x509.Name:
+    attributes = [x509.NameAttribute(NameOID.ORGANIZATION_NAME, _ORG)]
+    if unit is not None:
+        attributes.append(x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, unit))
+    return x509.Name([*attributes, x509.NameAttribute(NameOID.COMMON_NAME, common)])
 
 
 def _san(hosts: Iterable[str]) -> x509.SubjectAlternativeName:
@@ -96,20 +108,48 @@ def make_certs(directory: str | Path, hosts: Iterable[str] = (),
     cert_path(out, CA).write_bytes(ca_cert.public_bytes(serialization.Encoding.PEM))
     san = _san([*DEFAULT_HOSTS, *hosts])
     for role in ROLES:
-        key = ec.generate_private_key(ec.SECP256R1())
-        usages = [ExtendedKeyUsageOID.CLIENT_AUTH]
-        if role != "client":  # servers; the garbler is also a client of the evaluator
-            usages.append(ExtendedKeyUsageOID.SERVER_AUTH)
-        builder = (_builder(_name(_PREFIX + role), ca_name, key, days)
-                   .add_extension(x509.BasicConstraints(ca=False, path_length=None),
-                                  critical=True)
-                   .add_extension(x509.ExtendedKeyUsage(usages), critical=False))
-        if role != "client":
-            builder = builder.add_extension(san, critical=False)
-        cert = builder.sign(ca_key, hashes.SHA256())
-        _write_key(key_path(out, role), key)
-        cert_path(out, role).write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        _issue(out, role, role, None, ca_key, ca_name, days,
+               san if role != "client" else None)
     return out
+
+
+def _issue(out: Path, file_name: str, role: str, unit: str | None,
+           ca_key: ec.EllipticCurvePrivateKey, ca_name: x509.Name, days: int,
+           san: x509.SubjectAlternativeName | None) -> None:
+    key = ec.generate_private_key(ec.SECP256R1())
+    usages = [ExtendedKeyUsageOID.CLIENT_AUTH]
+    if san is not None:  # servers; the garbler is also a client of the evaluator
+        usages.append(ExtendedKeyUsageOID.SERVER_AUTH)
+    builder = (_builder(_name(_PREFIX + role, unit), ca_name, key, days)
+               .add_extension(x509.BasicConstraints(ca=False, path_length=None),
+                              critical=True)
+               .add_extension(x509.ExtendedKeyUsage(usages), critical=False))
+    if san is not None:
+        builder = builder.add_extension(san, critical=False)
+    cert = builder.sign(ca_key, hashes.SHA256())
+    _write_key(key_path(out, file_name), key)
+    cert_path(out, file_name).write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+
+
+def add_client(directory: str | Path, name: str, days: int = VALID_DAYS) -> Path:
+    """Issue client certificate ``name`` (``name.pem``/``name.key``) with the CA kept in
+    ``directory``: one per device, so that each can be told apart and revoked."""
+    out = Path(directory)
+    if not CLIENT_NAME.fullmatch(name) or name in (*ROLES, CA):
+        raise ValueError(f"client name {name!r}: use 1-64 letters, digits, '.', '_' or '-', "
+                         f"not one of {', '.join((*ROLES, CA))}")
+    if cert_path(out, name).exists() or key_path(out, name).exists():
+        raise ValueError(f"{cert_path(out, name)} already exists: choose another name")
+    try:
+        ca_key = serialization.load_pem_private_key(key_path(out, CA).read_bytes(), None)
+        ca_cert = x509.load_pem_x509_certificate(cert_path(out, CA).read_bytes())
+    except (OSError, ValueError) as exc:
+        raise TLSFileError(f"{out} holds no usable CA (ca.pem and ca.key: "
+                           f"{getattr(exc, 'strerror', None) or exc}; {_REMEDY})") from None
+    if not isinstance(ca_key, ec.EllipticCurvePrivateKey):
+        raise TLSFileError(f"{key_path(out, CA)} is not an EC key made by snail-client certs")
+    _issue(out, name, "client", name, ca_key, ca_cert.subject, days, None)
+    return cert_path(out, name)
 
 
 class TLSFileError(ValueError):
@@ -120,10 +160,12 @@ class TLSFileError(ValueError):
 _REMEDY = "create the directory with 'snail-client certs DIR'"
 
 
-def _context(purpose: int, tls_dir: str | Path, role: str) -> ssl.SSLContext:
+def _context(purpose: int, tls_dir: str | Path, role: str,
+             name: str | None = None) -> ssl.SSLContext:
     if role not in ROLES:
         raise ValueError(f"role must be one of {ROLES}, got {role!r}")
-    cert, key, ca = cert_path(tls_dir, role), key_path(tls_dir, role), cert_path(tls_dir, CA)
+    name = name or role
+    cert, key, ca = cert_path(tls_dir, name), key_path(tls_dir, name), cert_path(tls_dir, CA)
     for path in (cert, key, ca):
         if not path.is_file():
             raise TLSFileError(f"TLS file {path} is missing ({_REMEDY})")
@@ -149,15 +191,29 @@ def server_context(tls_dir: str | Path, role: str) -> ssl.SSLContext:
     return _context(ssl.PROTOCOL_TLS_SERVER, tls_dir, role)
 
 
-def client_context(tls_dir: str | Path, role: str) -> ssl.SSLContext:
-    """Connecting side of ``role``: TLS 1.3 only, server name and chain checked."""
-    ctx = _context(ssl.PROTOCOL_TLS_CLIENT, tls_dir, role)
+def client_context(tls_dir: str | Path, role: str, name: str | None = None) -> ssl.SSLContext:
+    """Connecting side of ``role`` with certificate ``name`` (default: the role's own):
+    TLS 1.3 only, server name and chain checked."""
+    ctx = _context(ssl.PROTOCOL_TLS_CLIENT, tls_dir, role, name)
     ctx.check_hostname = True
     return ctx
 
 
-def peer_role(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> str:
-    """The role in the verified peer certificate; ValueError if there is none."""
+@dataclass(frozen=True)
+class Identity:
+    """Who a verified peer is: its role, its name (a client's own name, else the role)
+    and the SHA-256 fingerprint of its certificate (hex)."""
+
+    role: str
+    name: str
+    fingerprint: str
+
+    def revoked_by(self, revoked: frozenset[str]) -> bool:
+        return self.name in revoked or self.fingerprint in revoked
+
+
+def peer_identity(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> Identity:
+    """The identity in the verified peer certificate; ValueError if there is none."""
     cert = ssl_object.getpeercert() if ssl_object is not None else None
     if not cert:
         raise ValueError("the peer presented no verified certificate")
@@ -166,4 +222,26 @@ def peer_role(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> str:
     role = common[len(_PREFIX):] if common.startswith(_PREFIX) else ""
     if subject.get("organizationName") != _ORG or role not in ROLES:
         raise ValueError(f"the peer certificate names no snail role (subject {subject})")
-    return role
+    der = ssl_object.getpeercert(binary_form=True) or b""
+    return Identity(role, subject.get("organizationalUnitName", role),
+                    hashlib.sha256(der).hexdigest())
+
+
+def read_revoked(tls_dir: str | Path) -> frozenset[str]:
+    """Names and fingerprints listed in ``tls_dir/revoked.txt`` (one a line, ``#``
+    comments; fingerprints in hex, colons allowed); none if the file does not exist."""
+    path = Path(tls_dir) / REVOKED
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return frozenset()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TLSFileError(f"{path} cannot be read ({exc})") from None
+    entries = (line.split("#", 1)[0].strip() for line in text.splitlines())
+    return frozenset(_normalized(e) for e in entries if e)
+
+
+def _normalized(entry: str) -> str:
+    """Fingerprints compare as lowercase hex without colons; names as written."""
+    bare = entry.replace(":", "").lower()
+    return bare if re.fullmatch(r"[0-9a-f]{64}", bare) else entry
