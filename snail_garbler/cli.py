@@ -6,7 +6,14 @@ import click
 
 from snail_common import families
 from snail_common.net import tls
-from snail_common.net.cli import address, daemon_options, fail, log_level_of, options_from
+from snail_common.net.cli import (
+    address,
+    configure_caches,
+    daemon_options,
+    fail,
+    log_level_of,
+    options_from,
+)
 from snail_common.net.conn import format_addr
 from snail_common.net.logs import setup
 from snail_common.net.service import run_daemon
@@ -33,6 +40,7 @@ def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_
     except (OSError, ValueError) as exc:
         fail(2, f"--tls-dir: {exc}", "snail-garbler")
     families.register_all()
+    configure_caches(kwargs)
     try:
         interrupted = run_daemon(daemon, listen, server_ctx)
     except OSError as exc:  # cannot bind the listening address

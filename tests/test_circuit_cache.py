@@ -2,6 +2,7 @@
 sidecar; bench CLI contract."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -41,6 +42,24 @@ def test_cache_round_trip_keeps_function_and_hash(tmp_path):
     x = np.array([1, 200, 255], np.uint8)
     y = np.array([2, 100, 1], np.uint8)
     assert list(evaluate(c2, {"x": x, "y": y}, s2)["s"]) == list(x + y)
+
+
+def test_disk_cache_evicts_the_least_recently_used_entries(tmp_path, monkeypatch):
+    entry = tmp_path / f"adder-a.s{SCHEDULE_VERSION}.arrays"
+    cached("adder-a", _adder, tmp_path)
+    size = cache.entry_bytes(entry)
+    monkeypatch.setattr(cache, "_settings", dict(cache._settings))
+    cache.configure(max_bytes=int(2.5 * size))  # room for two entries
+    cached("adder-b", _adder, tmp_path)
+    os.utime(entry, (1, 1))  # a long time ago ...
+    cached("adder-a", _adder, tmp_path)  # ... until used again: now b is the oldest
+    cached("adder-c", _adder, tmp_path)
+    left = sorted(p.name.split(".")[0] for p in tmp_path.glob("*.arrays"))
+    assert left == ["adder-a", "adder-c"]
+    assert (tmp_path / f"adder-b.s{SCHEDULE_VERSION}.interface.json").exists()
+    cache.configure(max_bytes=1)  # an entry bigger than the bound still serves its run
+    cached("adder-d", _adder, tmp_path)
+    assert [p.name.split(".")[0] for p in tmp_path.glob("*.arrays")] == ["adder-d"]
 
 
 def test_hash_changes_with_the_netlist():

@@ -58,11 +58,19 @@ def test_compiled_once_then_served_from_memory_and_disk(tmp_path, monkeypatch):
     assert again[0].content_hash() == first[0].content_hash()
 
 
-def test_lru_keeps_a_few_circuits():
-    for k in range(1, registry.LRU_SIZE + 2):
-        registry.compiled(f"ops/fadd-x{k}")
-    assert registry.lookup("ops/fadd-x1") is None
-    assert registry.lookup(f"ops/fadd-x{registry.LRU_SIZE + 1}") is not None
+def test_memory_cache_is_bounded_in_bytes(monkeypatch):
+    monkeypatch.setattr(registry, "_memory", dict(registry._memory))
+    sizes = [registry.footprint(registry.compiled(f"ops/fadd-x{k}")) for k in (1, 2, 3)]
+    assert all(registry.lookup(f"ops/fadd-x{k}") for k in (1, 2, 3))  # 8 GiB by default
+    assert sizes[0] < sizes[1] < sizes[2]
+    registry.configure(memory_bytes=sizes[2] + sizes[1])
+    registry.compiled("ops/fadd-x1")  # the oldest two go: x2 + x3 + x1 > the bound
+    assert [registry.lookup(f"ops/fadd-x{k}") is not None for k in (1, 2, 3)] == \
+        [True, False, True]
+    registry.configure(memory_bytes=1)  # the most recent circuit always stays
+    registry.compiled("ops/fadd-x2")
+    assert [registry.lookup(f"ops/fadd-x{k}") is not None for k in (1, 2, 3)] == \
+        [False, True, False]
 
 
 def test_interface_needs_no_schedule(monkeypatch):

@@ -20,6 +20,7 @@ from daemons import daemons_with
 from test_service_e2e import hello, raw, read_msg
 
 from snail_client.cli import main
+from snail_client.embedded import start_daemon
 from snail_client.secure import SecureRunner, ServiceError
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net import errors, messages, tls
@@ -201,3 +202,25 @@ def test_revocation_by_fingerprint(services):
         services.evaluator.process.send_signal(signal.SIGHUP)
         services.garbler.process.send_signal(signal.SIGHUP)
         time.sleep(0.5)
+
+
+def test_a_daemon_keeps_its_disk_cache_within_its_bound(services, tmp_path):
+    cache_dir = tmp_path / "circuits"
+    daemon = start_daemon("evaluator", ["--tls-dir", str(services.tls_dir), "--cache-dir",
+                                        str(cache_dir), "--cache-max-gb", "0.001"],
+                          tmp_path / "evaluator.log")
+    try:
+        with raw(daemon.address, services.tls_dir) as sock:
+            hello(sock)
+            # 0.6 MB and 0.26 MB fit 1 MiB together; the 1.5 MB divider is kept alone
+            for k, circuit in enumerate(["ops/fmul-x4", "ops/fadd-x4", "ops/fdiv-x8"]):
+                sock.sendall(encode_bytes(messages.make(
+                    "session_start", sid=bytes([k + 1]) * 16, circuit=circuit,
+                    hash=registry.compiled(circuit)[0].content_hash())))
+                sock.sendall(encode_bytes(messages.make("health_request")))
+                assert read_msg(sock)["t"] == "health"  # answered after the compile
+                names = sorted(p.name.split(".")[0] for p in cache_dir.glob("*.arrays"))
+                assert names == [["ops-fmul-x4"], ["ops-fadd-x4", "ops-fmul-x4"],
+                                 ["ops-fdiv-x8"]][k]
+    finally:
+        daemon.stop()

@@ -11,6 +11,11 @@ content hash, a CRC-32 per file). Loading checks the CRCs with plain reads and t
 memory-maps the arrays read-only: a server that only runs the schedule never touches
 the netlist (a gigabyte at n = 256), and nothing is copied or hashed again (loading the
 n = 256 circuit took 6.6 s of reads, copies and page faults from an npz).
+
+The cache is bounded (``configure``; default 20 GiB): after an entry is written, the
+least recently used others are removed until the entries fit. A load marks an entry used
+(its folder's mtime). An entry another process has mapped survives its removal until
+unmapped (POSIX unlink semantics); a removed entry is rebuilt when next asked for.
 """
 
 from __future__ import annotations
@@ -33,11 +38,23 @@ from .ir import Circuit, Group, Interface
 from .schedule import SCHEDULE_VERSION, Schedule, schedule_circuit
 
 CACHE_ENV = "SNAIL_CACHE_DIR"
+DEFAULT_MAX_BYTES = 20 << 30
 _NAME_OK = re.compile(r"^[A-Za-z0-9_.-]+$")
+_ENTRY_GLOB = "*.arrays"
+_settings: dict[str, Path | int | None] = {"directory": None, "max_bytes": DEFAULT_MAX_BYTES}
+
+
+def configure(directory: Path | None = None, max_bytes: int | None = None) -> None:
+    """Set this process's cache folder (default: see ``cache_dir``) and its size bound."""
+    _settings["directory"] = directory
+    _settings["max_bytes"] = DEFAULT_MAX_BYTES if max_bytes is None else max_bytes
 
 
 def cache_dir() -> Path:
-    """$SNAIL_CACHE_DIR, else $XDG_CACHE_HOME/snail, else ~/.cache/snail."""
+    """The configured folder, else $SNAIL_CACHE_DIR, else $XDG_CACHE_HOME/snail, else
+    ~/.cache/snail."""
+    if _settings["directory"] is not None:
+        return Path(_settings["directory"])
     if os.environ.get(CACHE_ENV):
         return Path(os.environ[CACHE_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
@@ -163,13 +180,43 @@ def cached(name: str, build: Callable[[], Circuit],
     path = _path(name, directory)
     if path.exists():
         try:
-            return load(path)
+            loaded = load(path)
+            with contextlib.suppress(OSError):
+                os.utime(path)  # used now: the last to be evicted
+            return loaded
         except (OSError, ValueError, KeyError, TypeError):
             shutil.rmtree(path, ignore_errors=True)  # corrupt or stale format: rebuild
     circuit = build()
     schedule = schedule_circuit(circuit)
     save(path, circuit, schedule)
+    evict(path.parent, int(_settings["max_bytes"]), keep=path)
     return circuit, schedule
+
+
+def entry_bytes(entry: Path) -> int:
+    """Bytes on disk of a cache entry folder."""
+    with os.scandir(entry) as files:
+        return sum(f.stat().st_size for f in files if f.is_file())
+
+
+def evict(directory: Path, max_bytes: int, keep: Path | None = None) -> list[Path]:
+    """Remove the least recently used entries of ``directory`` (never ``keep``) until
+    the rest take at most ``max_bytes``; returns the entries removed."""
+    entries = []
+    for entry in directory.glob(_ENTRY_GLOB):
+        with contextlib.suppress(OSError):  # another process may be removing it
+            entries.append((entry.stat().st_mtime, entry_bytes(entry), entry))
+    total = sum(size for _, size, _ in entries)
+    removed = []
+    for _, size, entry in sorted(entries, key=lambda e: e[0]):
+        if total <= max_bytes:
+            break
+        if entry == keep:
+            continue
+        shutil.rmtree(entry, ignore_errors=True)
+        total -= size
+        removed.append(entry)
+    return removed
 
 
 def cached_interface(name: str, build: Callable[[], Circuit],

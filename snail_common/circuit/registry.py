@@ -7,8 +7,9 @@ builder, and a version that it bumps whenever what it builds changes (the cache 
 families (the roles, the benchmarks) registers them with ``register``.
 
 Ids are parsed strictly (bounded parameters) because servers compile whatever a client
-names. Compiled circuits come from the on-disk cache and stay in a small in-process LRU, so
-a daemon compiles each circuit once; concurrent requests for one id build it once. Clients
+names. Compiled circuits come from the on-disk cache and stay in an in-process LRU bounded
+in bytes (``configure``; the most recent circuit always stays), so a daemon compiles each
+circuit once; concurrent requests for one id build it once. Clients
 ask for ``interface`` only and never hold a netlist or schedule.
 """
 
@@ -21,13 +22,15 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
 from . import cache
 from .builder import CircuitTooLarge, and_gate_limit
 from .ir import Circuit, Interface
 from .schedule import Schedule
 
 MAX_ID_LENGTH = 128
-LRU_SIZE = 4
+DEFAULT_MEMORY_BYTES = 8 << 30
 
 _ID = re.compile(r"^(?P<family>[a-z]+)/(?P<rest>[A-Za-z0-9_.-]+)$")
 _VERSION = re.compile(r"^[A-Za-z0-9_.]+$")
@@ -62,6 +65,7 @@ class Family:
 
 _families: dict[str, Family] = {}
 _lru: OrderedDict[str, tuple[Circuit, Schedule]] = OrderedDict()
+_memory = {"max_bytes": DEFAULT_MEMORY_BYTES}
 _lru_lock = threading.Lock()
 _build_locks: dict[str, threading.Lock] = {}
 
@@ -72,6 +76,25 @@ def register(family: Family) -> None:
     if known is not None and known != family:
         raise ValueError(f"circuit family {family.name!r} is already registered")
     _families[family.name] = family
+
+
+def configure(memory_bytes: int | None = None) -> None:
+    """Bound the bytes of compiled circuits kept in this process."""
+    _memory["max_bytes"] = DEFAULT_MEMORY_BYTES if memory_bytes is None else memory_bytes
+    with _lru_lock:
+        _trim()
+
+
+def _trim() -> None:
+    """Drop the least recently used circuits beyond the bound (caller holds the lock)."""
+    while len(_lru) > 1 and sum(map(footprint, _lru.values())) > _memory["max_bytes"]:
+        _lru.popitem(last=False)
+
+
+def footprint(hit: tuple[Circuit, Schedule]) -> int:
+    """Bytes of the arrays of a compiled circuit and its schedule (resident or mapped)."""
+    return sum(value.nbytes for part in hit for value in vars(part).values()
+               if isinstance(value, np.ndarray))
 
 
 def families() -> tuple[str, ...]:
@@ -104,8 +127,7 @@ def compiled(circuit_id: str, max_and: int | None = None) -> tuple[Circuit, Sche
             hit = _within(circuit_id, built, max_and)  # a refused circuit stays out
             with _lru_lock:
                 _lru[circuit_id] = hit
-                while len(_lru) > LRU_SIZE:
-                    _lru.popitem(last=False)
+                _trim()
             return hit
     finally:  # also after a refusal or a failed build: ids come from requests
         with _lru_lock:

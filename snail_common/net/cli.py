@@ -9,6 +9,8 @@ from typing import Any, NoReturn
 
 import click
 
+from snail_common.circuit import cache, registry
+
 from .conn import parse_addr
 from .service import Options
 
@@ -79,6 +81,17 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Serve /metrics (Prometheus text) and /health (JSON) over HTTPS "
                           "with this daemon's certificate (no client certificate needed: "
                           "counts only). Default: off."),
+        click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path),
+                     help="Compiled circuits on disk (default: $SNAIL_CACHE_DIR, else "
+                          "~/.cache/snail)."),
+        click.option("--cache-max-gb", type=click.FloatRange(0.001, 1e6),
+                     default=cache.DEFAULT_MAX_BYTES / 2**30, show_default=True,
+                     help="Disk cache bound: after a new circuit is stored, the least "
+                          "recently used others are removed until the rest fit."),
+        click.option("--memory-cache-gb", type=click.FloatRange(0.001, 1e6),
+                     default=registry.DEFAULT_MEMORY_BYTES / 2**30, show_default=True,
+                     help="Compiled circuits kept in memory, in GiB of their arrays (the "
+                          "most recent one always stays)."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
                      show_default=True,
                      help="Seconds SIGTERM waits for running sessions to finish."),
@@ -97,6 +110,12 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    max_sessions_per_peer=kwargs["max_sessions_per_peer"],
                    max_connections_per_peer=kwargs["max_connections_per_peer"],
                    tls_dir=kwargs["tls_dir"], metrics=kwargs["metrics"])
+
+
+def configure_caches(kwargs: dict[str, Any]) -> None:
+    """Apply --cache-dir, --cache-max-gb and --memory-cache-gb to this process."""
+    cache.configure(kwargs["cache_dir"], int(kwargs["cache_max_gb"] * 2**30))
+    registry.configure(int(kwargs["memory_cache_gb"] * 2**30))
 
 
 def fail(code: int, message: str, prog: str | None = None) -> NoReturn:
