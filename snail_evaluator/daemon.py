@@ -73,6 +73,7 @@ class Session:
     n_and: int = 0
     bytes_in: int = 0
     bytes_out: int = 0
+    queued: int = 0  # table bytes buffered while the labels are awaited
 
     def record(self, outcome: str, reason: str = "") -> dict:
         """This session's log line fields (see Daemon.log_session)."""
@@ -326,10 +327,11 @@ class EvaluatorDaemon(Daemon):
                     frames = list(buffered)
                     buffered.clear()
                     ahead = received
-                    self.ahead_buffered -= sum(len(data) for data in frames)
+                    self.ahead_buffered -= s.queued
+                    s.queued = 0
                     await self._feed(ev, frames)
                     continue
-                if ev is None and self.ahead_buffered >= self.options.ahead_bytes:
+                if ev is None and self._queue_full(s):
                     await asyncio.wait({s.ready})  # full: the stream waits for the labels
                     continue
                 if recv is None:
@@ -352,6 +354,7 @@ class EvaluatorDaemon(Daemon):
                 if ev is None:
                     buffered.append(msg["data"])
                     self.ahead_buffered += len(msg["data"])
+                    s.queued += len(msg["data"])
                 else:
                     await self._feed(ev, [msg["data"]])
             try:
@@ -366,10 +369,20 @@ class EvaluatorDaemon(Daemon):
         finally:
             if ev is not None:
                 self.lanes.release(s.circuit)
-            self.ahead_buffered -= sum(len(data) for data in buffered)
+            self.ahead_buffered -= s.queued
+            s.queued = 0
             if recv is not None:
                 recv.cancel()
         return ev, received, ahead, t_labels
+
+    def _queue_full(self, s: Session) -> bool:
+        """No more garbled-ahead tables for ``s``: the daemon's buffer, or its client's
+        share of it, is full."""
+        if self.ahead_buffered >= self.options.ahead_bytes:
+            return True
+        # sessions whose client has not shown up yet share one peer's share
+        peer_queued = sum(x.queued for x in self.sessions.values() if x.peer == s.peer)
+        return peer_queued >= self.options.ahead_bytes_per_peer
 
     async def _feed(self, ev: Solo | EvalLane, frames: list[bytes]) -> None:
         """Evaluate ``frames`` in the worker pool."""

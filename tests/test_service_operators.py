@@ -2,6 +2,7 @@
 SIGHUP, one JSON log line per session, Prometheus counters and health over HTTPS on
 --metrics, and per-peer quotas on sessions and connections."""
 
+import asyncio
 import hashlib
 import json
 import signal
@@ -21,7 +22,7 @@ from test_service_e2e import hello, raw, read_msg
 
 from snail_client.cli import main
 from snail_client.embedded import start_daemon
-from snail_client.secure import SecureRunner, ServiceError
+from snail_client.secure import AsyncSecureRunner, SecureRunner, ServiceError
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net import errors, messages, tls
 from snail_common.net.frames import encode_bytes
@@ -224,3 +225,27 @@ def test_a_daemon_keeps_its_disk_cache_within_its_bound(services, tmp_path):
                                  ["ops-fdiv-x8"]][k]
     finally:
         daemon.stop()
+
+
+@pytest.fixture(scope="module")
+def stingy(tmp_path_factory):
+    yield from daemons_with(tmp_path_factory, "--ahead-mb-per-peer", "0")
+
+
+def test_a_peer_cannot_fill_the_evaluator_with_tables_garbled_ahead(stingy):
+    """With no share of the buffer for its name, a client's announced runs are garbled
+    only once its labels are in (the daemon-wide buffer, 256 MiB, would take them)."""
+    _, schedule = registry.compiled(CIRCUIT)
+    rows = np.random.default_rng(5).random((2, schedule.n_inputs)) < 0.5
+
+    async def scenario():
+        async with AsyncSecureRunner(stingy.garbler_addr, stingy.evaluator_addr,
+                                     stingy.tls_dir, timeout=60, ahead=2) as r:
+            r.expect(CIRCUIT, 2)
+            await asyncio.sleep(1.0)
+            return [await r.invoke(CIRCUIT, row) for row in rows]
+
+    runs = asyncio.run(scenario())
+    for inv, want in zip(runs, evaluate_bits(schedule, rows)):
+        np.testing.assert_array_equal(inv.outputs, want)
+        assert inv.garbled_ahead == 0

@@ -56,6 +56,10 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      default=defaults.ahead_bytes >> 20, show_default=True,
                      help="Evaluator: MiB of garbled tables held for sessions garbled "
                           "ahead of their client's labels; beyond it streams wait."),
+        click.option("--ahead-mb-per-peer", type=click.IntRange(0, 1 << 20),
+                     default=defaults.ahead_bytes_per_peer >> 20, show_default=True,
+                     help="Evaluator: the share of --ahead-mb one client certificate name "
+                          "may fill."),
         click.option("--lane-window-ms", type=click.FloatRange(0, 1000),
                      default=defaults.lane_window_ms, show_default=True,
                      help="Sessions of the same circuit starting within this many ms "
@@ -105,6 +109,7 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    session_timeout=kwargs["session_timeout"], grace=kwargs["grace"],
                    workers=kwargs["workers"], max_and_gates=kwargs["max_and_gates"],
                    ahead_bytes=kwargs["ahead_mb"] << 20,
+                   ahead_bytes_per_peer=kwargs["ahead_mb_per_peer"] << 20,
                    lane_window_ms=kwargs["lane_window_ms"], max_lanes=kwargs["max_lanes"],
                    idle_timeout=kwargs["idle_timeout"],
                    max_sessions_per_peer=kwargs["max_sessions_per_peer"],

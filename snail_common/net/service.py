@@ -76,6 +76,7 @@ class Options:
     # garbled tables an evaluator holds for sessions whose client has not sent its labels
     # yet (garble-ahead); beyond this the garbler's streams wait
     ahead_bytes: int = 256 << 20
+    ahead_bytes_per_peer: int = 128 << 20  # one client certificate name's share of it
     # sessions of one circuit starting within this window run as lanes of one pass
     # (garbler: requests; evaluator: client labels; 0: off), at most max_lanes at once; a
     # session waits for the window only while another run of its circuit is under way
