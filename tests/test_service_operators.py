@@ -152,7 +152,7 @@ def test_a_peer_gets_its_connection_quota_and_no_more(services):
         for sock in socks:
             assert hello(sock)["t"] == "capabilities"
         with raw(services.garbler_addr, services.tls_dir) as extra:
-            refused = read_msg(extra)
+            refused = hello(extra)
             assert refused["code"] == errors.BUSY
             assert "--max-connections-per-peer" in refused["message"]
     finally:
@@ -197,7 +197,7 @@ def test_revocation_by_fingerprint(services):
         time.sleep(0.5)
         with raw(services.evaluator_addr, services.tls_dir, ctx=tls.client_context(
                 services.tls_dir, "client", "phone")) as sock:
-            assert read_msg(sock)["code"] == errors.REVOKED
+            assert hello(sock)["code"] == errors.REVOKED
     finally:
         (services.tls_dir / tls.REVOKED).unlink()
         services.evaluator.process.send_signal(signal.SIGHUP)

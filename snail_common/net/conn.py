@@ -295,10 +295,13 @@ async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_r
 
 
 async def accept(conn: Connection, capabilities: dict[str, Any], allowed: tuple[str, ...],
-                 timeout: float = 10.0) -> None:
+                 timeout: float = 10.0,
+                 refusal: Callable[[Connection], ProtocolError | None] | None = None) -> None:
     """Server side of the opening: check the certificate's role is ``allowed``, read the
-    peer's hello, answer ``capabilities``. On failure the peer gets an ``error``, the
-    stream is closed and ProtocolError (or ConnectionClosed, TimeoutError) is raised."""
+    peer's hello, ask ``refusal`` (revoked, over a quota ...), answer ``capabilities``. On
+    failure the peer gets an ``error``, the stream is closed and ProtocolError (or
+    ConnectionClosed, TimeoutError) is raised. Refusals come after the hello is read: a
+    peer still writing its hello to a closed socket could lose the error to a reset."""
     try:
         if not conn.peer_role:
             raise ProtocolError(FORBIDDEN, "the peer certificate names no snail role")
@@ -309,6 +312,9 @@ async def accept(conn: Connection, capabilities: dict[str, Any], allowed: tuple[
         if hello["role"] != conn.peer_role:
             raise ProtocolError(FORBIDDEN, f"hello claims role {hello['role']!r} but the "
                                            f"certificate is a {conn.peer_role}'s")
+        refused = refusal(conn) if refusal is not None else None
+        if refused is not None:
+            raise refused
     except ProtocolError as exc:
         await conn.close(messages.error(exc.code, exc.message))
         raise

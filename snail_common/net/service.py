@@ -254,12 +254,8 @@ class Daemon:
     async def _on_connect(self, conn: Connection) -> None:
         peer = str(conn.peer)
         try:
-            refusal = self._refusal(conn)
-            if refusal is not None:
-                await conn.close(messages.error(refusal.code, refusal.message))
-                raise refusal
             await accept(conn, self.capabilities(), self.allowed,
-                         self.options.handshake_timeout)
+                         self.options.handshake_timeout, self._refusal)
         except (ProtocolError, RemoteError, ConnectionClosed, TimeoutError) as exc:
             self.metrics.refused[getattr(exc, "code", "handshake")] += 1
             event(self.log, "connection_rejected", logging.WARNING, peer=peer,
