@@ -99,11 +99,13 @@ class EvaluatorDaemon(Daemon):
             else:
                 await self._serve_client(conn)
         except ProtocolError as exc:
-            event(self.log, "protocol_error", logging.WARNING, peer=str(conn.peer),
+            event(self.log, "protocol_error", logging.WARNING, peer=conn.peer_name,
+                  address=str(conn.peer),
                   peer_role=conn.peer_role, code=exc.code, reason=exc.message)
             await conn.close(messages.error(exc.code, exc.message))
         except ConnectionClosed as exc:
-            event(self.log, "peer_gone", peer=str(conn.peer), peer_role=conn.peer_role,
+            event(self.log, "peer_gone", peer=conn.peer_name, address=str(conn.peer),
+                  peer_role=conn.peer_role,
                   reason=str(exc))
 
     @property

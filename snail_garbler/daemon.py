@@ -106,11 +106,13 @@ class GarblerDaemon(Daemon):
                     raise ProtocolError(UNEXPECTED, f"a client may not send {kind} to the "
                                                     "garbler")
         except ProtocolError as exc:
-            event(self.log, "protocol_error", logging.WARNING, peer=str(conn.peer),
+            event(self.log, "protocol_error", logging.WARNING, peer=conn.peer_name,
+                  address=str(conn.peer),
                   code=exc.code, reason=exc.message)
             await conn.close(messages.error(exc.code, exc.message))
         except ConnectionClosed as exc:
-            event(self.log, "client_gone", peer=str(conn.peer), reason=str(exc))
+            event(self.log, "client_gone", peer=conn.peer_name, address=str(conn.peer),
+                  reason=str(exc))
         finally:
             for task in tasks.values():
                 task.cancel()
@@ -212,7 +214,8 @@ class GarblerDaemon(Daemon):
                                                  traffic={"garbler_to_evaluator": sent},
                                                  timing=timing)))
         except ConnectionClosed:
-            event(self.log, "client_gone", sid=sid, reason="before its result was sent")
+            event(self.log, "client_gone", peer=client.peer_name, sid=sid,
+                  reason="before its result was sent")
             return 0
 
     @staticmethod

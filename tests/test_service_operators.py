@@ -249,3 +249,21 @@ def test_a_peer_cannot_fill_the_evaluator_with_tables_garbled_ahead(stingy):
     for inv, want in zip(runs, evaluate_bits(schedule, rows)):
         np.testing.assert_array_equal(inv.outputs, want)
         assert inv.garbled_ahead == 0
+
+
+def test_a_cancelled_session_is_freed_and_logged_as_aborted(services):
+    start = dict(circuit=CIRCUIT, hash=registry.compiled(CIRCUIT)[0].content_hash())
+    sid = b"\7" * 16
+    with raw(services.evaluator_addr, services.tls_dir) as sock:
+        hello(sock)
+        sock.sendall(encode_bytes(messages.make("session_start", sid=sid, **start)))
+        sock.sendall(encode_bytes(messages.error(errors.ABORTED, "changed my mind", sid)))
+        answer = read_msg(sock)
+        assert (answer["code"], answer["sid"]) == (errors.ABORTED, sid)
+        sock.sendall(encode_bytes(messages.make("health_request")))
+        assert read_msg(sock)["sessions"]["active"] == 0
+    lines = [s for s in _sessions(services.evaluator.log) if s["sid"] == sid.hex()]
+    assert [(s["peer"], s["outcome"]) for s in lines] == [("client", errors.ABORTED)]
+    opened = [json.loads(line) for line in services.evaluator.log.read_text().splitlines()
+              if '"connection_open"' in line]
+    assert {entry["peer"] for entry in opened} >= {"client", "garbler", "robot7"}

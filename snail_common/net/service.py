@@ -252,28 +252,29 @@ class Daemon:
         return None
 
     async def _on_connect(self, conn: Connection) -> None:
-        peer = str(conn.peer)
+        address = str(conn.peer)
         try:
             await accept(conn, self.capabilities(), self.allowed,
                          self.options.handshake_timeout, self._refusal)
         except (ProtocolError, RemoteError, ConnectionClosed, TimeoutError) as exc:
             self.metrics.refused[getattr(exc, "code", "handshake")] += 1
-            event(self.log, "connection_rejected", logging.WARNING, peer=peer,
-                  peer_name=conn.peer_name, reason=str(exc))
+            event(self.log, "connection_rejected", logging.WARNING, peer=conn.peer_name,
+                  address=address, reason=str(exc))
             return
         self.connections.add(conn)
         try:
-            event(self.log, "connection_open", peer=peer, peer_role=conn.peer_role,
-                  peer_name=conn.peer_name)
+            event(self.log, "connection_open", peer=conn.peer_name, address=address,
+                  peer_role=conn.peer_role)
             await self.serve(conn)
         except Exception as exc:  # a bug must not take the daemon down: report and drop
-            self.log.exception("connection_error", extra={"snail_fields": {"peer": peer}})
+            self.log.exception("connection_error", extra={"snail_fields": {
+                "peer": conn.peer_name, "address": address}})
             await conn.close(messages.error(INTERNAL, f"internal error: {exc!r}"))
         finally:
             self.connections.discard(conn)
             await conn.close()
-            event(self.log, "connection_closed", peer=peer, peer_role=conn.peer_role,
-                  peer_name=conn.peer_name, bytes_in=conn.bytes_in, bytes_out=conn.bytes_out)
+            event(self.log, "connection_closed", peer=conn.peer_name, address=address,
+                  peer_role=conn.peer_role, bytes_in=conn.bytes_in, bytes_out=conn.bytes_out)
 
     async def run(self, host: str, port: int, ctx: ssl.SSLContext) -> None:
         """Listen until SIGTERM/SIGINT, then shut down gracefully."""
