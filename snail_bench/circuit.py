@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 
 from snail_common.circuit.schedule import schedule_circuit
+from snail_common.pnp.sil import CLIENT
 from snail_common.pnp.spec import Spec, build
 
 
@@ -21,6 +22,7 @@ def circuit_report(spec: Spec) -> dict:
     counts = circuit.counts()
     return {"circuit": {
         "algorithm": spec.algorithm, "mode": spec.mode, "points": spec.points,
+        "solve": "client" if spec.solver == CLIENT else "circuit",
         "solver": spec.solver, "and": counts["and"], "xor": counts["xor"],
         "not": counts["not"], "depth": circuit.depth(), "steps": len(schedule.steps()),
         "build_s": round(built - start, 3), "schedule_s": round(scheduled - built, 3)}}

@@ -124,17 +124,19 @@ def ops(as_json: bool) -> None:
               help="sil: one iteration per circuit; do: the data-oblivious 20-iteration baseline.")
 @click.option("--points", type=click.IntRange(4, 4096), default=6, show_default=True,
               help="Number of point correspondences the circuit takes.")
+@click.option("--solve", type=click.Choice(["client", "circuit"]),
+              help="client (default for sil): the circuit returns the normal equations and "
+                   "the client solves; circuit (forced for do): the paper's in-circuit solve.")
 @click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt", show_default=True,
-              help="Linear solver for the 6x6 step.")
+              help="Linear solver for the 6x6 step inside the circuit (--solve circuit).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def circuit(algorithm: str, mode: str, points: int, solver: str, as_json: bool) -> None:
+def circuit(algorithm: str, mode: str, points: int, solve: str | None, solver: str,
+            as_json: bool) -> None:
     """AND/XOR gates, AND-depth, schedule steps and build time of a localization circuit."""
-    from snail_common.pnp.spec import Spec
-
     from .circuit import circuit_report
 
     try:
-        spec = Spec(algorithm, mode, solver, points)
+        spec = _spec(algorithm, mode, solve, solver, points)
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     _emit(circuit_report(spec), as_json)
@@ -155,8 +157,11 @@ def engine(as_json: bool) -> None:
               help="Levenberg-Marquardt (damped) or Gauss-Newton.")
 @click.option("--mode", type=click.Choice(["sil", "do"]), default="sil", show_default=True,
               help="sil: one iteration per circuit; do: the data-oblivious 20-iteration baseline.")
+@click.option("--solve", type=click.Choice(["client", "circuit"]),
+              help="client (default for sil): the circuit returns the normal equations and "
+                   "the client solves; circuit (forced for do): the paper's in-circuit solve.")
 @click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt", show_default=True,
-              help="Linear solver for the 6x6 step.")
+              help="Linear solver for the 6x6 step inside the circuit (--solve circuit).")
 @click.option("--points", type=click.IntRange(4, 4096), multiple=True, metavar="N",
               help="Circuit size; repeat for several (default: 6 and 12; 64 and 256 take "
                    "minutes and gigabytes, only when asked).")
@@ -175,19 +180,19 @@ def engine(as_json: bool) -> None:
               help="Embedded daemons only: their --lane-window-ms (batch concurrent "
                    "sessions into lanes; 0: off; default: the daemons' own).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], repeat: int,
+def service(algorithm: str, mode: str, solve: str | None, solver: str,
+            points: tuple[int, ...], repeat: int,
             garbler: str | None, evaluator: str | None, tls_dir: str | None,
             clients: int, lane_window_ms: float | None, as_json: bool) -> None:
     """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
     per link, and the servers' peak memory. Circuits are compiled on first use."""
     from snail_client.embedded import check_addresses
-    from snail_common.pnp.spec import Spec
 
     from .service import service_report
 
     try:
         check_addresses(garbler, evaluator, tls_dir)
-        specs = [Spec(algorithm, mode, solver, n) for n in points or SERVICE_POINTS]
+        specs = [_spec(algorithm, mode, solve, solver, n) for n in points or SERVICE_POINTS]
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     from snail_client.secure import ServiceError
@@ -222,6 +227,13 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
             click.echo(f"{'':>20}  {row['clients']} clients: "
                        f"{row['throughput_inv_per_s']:.1f} invocations/s in total, "
                        f"slowest client's median {worst:.3f} s")
+
+
+def _spec(algorithm: str, mode: str, solve: str | None, solver: str, points: int):
+    """The circuit the client would run with these choices (pipeline.Options decides)."""
+    from snail_common.loc.pipeline import Options
+
+    return Options(algorithm=algorithm, mode=mode, solver=solver, solve=solve).spec(points)
 
 
 if __name__ == "__main__":

@@ -37,8 +37,15 @@ def _options(fn: Callable) -> Callable:
         click.option("--do-iterations", type=click.IntRange(1, 99), default=20,
                      show_default=True,
                      help="LM iterations inside the --mode do circuit (the paper uses 20)."),
+        click.option("--solve", type=click.Choice(["client", "circuit"]),
+                     help="Where the 6x6 step is solved. client (default for sil): the "
+                          "circuit returns the normal equations, which are functions of "
+                          "your own inputs, and the client damps and solves them: a "
+                          "shallower circuit, and a rejected LM step costs no secure run. "
+                          "circuit (forced for do): the paper's in-circuit solve."),
         click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt",
-                     show_default=True, help="6x6 solver inside the circuit."),
+                     show_default=True, help="6x6 solver inside the circuit (--solve "
+                                             "circuit)."),
         click.option("--backend", type=click.Choice(BACKENDS), default="garbled",
                      show_default=True,
                      help="garbled: the private service; cleartext: the same circuit in the "
@@ -85,7 +92,7 @@ def _make_options(kw: dict) -> Options:
         return Options(**{k: kw[k] for k in (
             "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
             "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations",
-            "busy_wait", "max_rms_px", "cert_name")})
+            "busy_wait", "max_rms_px", "cert_name", "solve")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 

@@ -124,18 +124,36 @@ def test_stops_within_max_iterations(max_iterations, improves):
 
 
 @pytest.mark.parametrize("max_iterations", [1, 3, 20])
-def test_gn_takes_every_step_and_keeps_the_best(max_iterations):
+def test_unguarded_gn_takes_every_step_and_keeps_the_best(max_iterations):
     costs = [100.0, 50.0, 80.0, 200.0] + [300.0 + k for k in range(20)]
-    res = run_gn(NRM, POSE0, _scripted(costs), max_iterations=max_iterations)
+    res = run_gn(NRM, POSE0, _scripted(costs), max_iterations=max_iterations,
+                 safeguard=False)
     assert res.iterations == max_iterations and res.invocations == max_iterations + 1
     assert all(h.lam == 0.0 and h.accepted for h in res.history)
     assert res.cost == min(costs[: max_iterations + 1]) and not res.converged
 
 
-def test_gn_stops_on_a_non_finite_cost():
-    res = run_gn(NRM, POSE0, _scripted([100.0, 50.0, math.nan, 1.0]), max_iterations=10)
+def test_unguarded_gn_stops_on_a_non_finite_cost():
+    res = run_gn(NRM, POSE0, _scripted([100.0, 50.0, math.nan, 1.0]), max_iterations=10,
+                 safeguard=False)
     assert res.iterations == 2 and res.cost == 50.0 and not res.converged
     assert not res.history[-1].accepted
+
+
+def test_safeguarded_gn_halves_a_step_that_does_not_lower_the_cost():
+    """Cost 50 at the first candidate; the next full step (80) and its half (60) fail,
+    its quarter (40) is taken; then a NaN and four more failures end the run."""
+    calls = Recording(_scripted([100.0, 50.0, 80.0, 60.0, 40.0, math.nan, 90, 90, 90, 90]))
+    res = run_gn(NRM, POSE0, calls, max_iterations=20)
+    assert [h.kind for h in res.history] == ["start", "candidate", "candidate", "halved",
+                                            "halved", "candidate", "halved", "halved",
+                                            "halved", "halved"]
+    assert [h.accepted for h in res.history] == [True, True, False, False, True] + [False] * 5
+    assert res.cost == 40.0 and not res.converged and res.iterations == 9
+    pose, _ = calls.calls[1]  # the quarter step is a quarter of the full one
+    full = np.linalg.norm(calls.calls[2][0].t - pose.t)
+    quarter = np.linalg.norm(calls.calls[4][0].t - pose.t)
+    assert quarter == pytest.approx(full / 4, rel=1e-3)
 
 
 def test_already_optimal_start_needs_one_call():

@@ -19,8 +19,8 @@ def _bench(*args: str) -> subprocess.CompletedProcess:
 def test_service_bench_reports_measured_runs():
     out = _bench("--points", "4", "--repeat", "2", "--json")
     assert out.returncode == 0, out.stderr
-    row = json.loads(out.stdout)["service"]["lm-sil-ldlt-n4"]
-    iface = registry.interface(Spec(points=4).registry_id)
+    row = json.loads(out.stdout)["service"]["ne-sil-n4"]  # the client solves, by default
+    iface = registry.interface(Spec(solver="client", points=4).registry_id)
     assert (row["and"], row["depth"], row["repeat"]) == (iface.counts["and"], iface.depth, 2)
     assert 0 < row["min_s"] <= row["median_s"] <= row["max_s"]
     assert row["first_s"] > 0
@@ -45,7 +45,7 @@ def test_service_bench_half_remote_addresses_is_a_usage_error():
 
 def test_service_bench_measures_a_fleet_with_lanes():
     out = _bench("--points", "4", "--repeat", "2", "--clients", "3", "--lane-window-ms", "50",
-                 "--json")
+                 "--solve", "circuit", "--json")
     assert out.returncode == 0, out.stderr
     row = json.loads(out.stdout)["service"]["lm-sil-ldlt-n4"]
     assert row["clients"] == 3 and len(row["client_median_s"]) == 3

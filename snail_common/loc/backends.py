@@ -22,6 +22,8 @@ from snail_common.circuit.ir import Circuit, Interface
 from snail_common.circuit.schedule import Schedule
 from snail_common.pnp import family
 from snail_common.pnp.do import do_reference, normal_equations64, pinv_solve64
+from snail_common.pnp.normal import UPPER
+from snail_common.pnp.sil import CLIENT
 from snail_common.pnp.spec import Spec, run_mirror
 
 from .types import Normalized, Pose
@@ -53,7 +55,7 @@ def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> Value
     weights = np.asarray(problem.weights, float)[:, None] * np.asarray(problem.axis_weights, float)
     values = {"R": pose.R, "t": pose.t, "image": problem.image, "world": problem.world,
               "weights": weights}
-    if spec.algorithm == "lm":
+    if spec.algorithm == "lm" and spec.solver != CLIENT:
         values["lam"] = lam
     return {k: np.asarray(v, np.float64) for k, v in values.items()}
 
@@ -102,6 +104,9 @@ class Float64Backend(Backend):
                     "previous_cost": np.float64(before["cost"])}
         hess, grad, cost = normal_equations64(values["R"], values["t"], values["image"],
                                               values["world"], values["weights"])
+        if spec.solver == CLIENT:
+            return {"hess": hess[tuple(np.array(UPPER).T)], "grad": grad,
+                    "cost": np.float64(cost)}
         lam = float(values.get("lam", 0.0))
         solve = np.linalg.solve if spec.solver == "ldlt" else pinv_solve64
         step = solve(hess + lam * np.diag(np.diag(hess)), -grad)

@@ -20,8 +20,11 @@ relative error up to ~1e-5 when the residuals are small against the image coordi
 (cancellation in a - u), so cost_tol = 1e-4 and step_tol = 1e-5 (1e-5 rad is 0.008 px at
 f = 800, and the RMS is second order in that: ~1e-4 px).
 
-GN (lambda = 0) has no rejection: every step is taken, and the result is the best pose seen,
-so a diverging GN run still reports its best point; it stops on the same tolerances.
+GN (lambda = 0) as the paper runs it has no rejection: every step is taken, and the
+result is the best pose seen, so a diverging GN run still reports its best point; it
+stops on the same tolerances. That GN oscillates on about one real frame in ten, so the
+product's GN is safeguarded: a step that does not lower the cost is halved (a new
+candidate, one more invocation) up to four times before the run stops.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ LAMBDA_MIN = 1e-8
 LAMBDA_MAX = 1e8
 COST_TOL = 1e-4
 STEP_TOL = 1e-5
+MIN_STEP_SCALE = 1 / 16  # the safeguarded GN's shortest try: four halvings
 
 
 @dataclass(frozen=True)
@@ -129,24 +133,35 @@ def run_lm(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
 
 
 def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iterations: int = 20,
-           *, cost_tol: float = COST_TOL, step_tol: float = STEP_TOL) -> DriverResult:
-    """Gauss-Newton (lambda = 0): take every step, report the best pose seen."""
+           *, cost_tol: float = COST_TOL, step_tol: float = STEP_TOL,
+           safeguard: bool = True) -> DriverResult:
+    """Gauss-Newton (lambda = 0), reporting the best pose seen. Safeguarded (default): a
+    step that does not lower the cost is halved, down to MIN_STEP_SCALE; unguarded (the
+    paper's GN): every finite step is taken."""
     call = _Caller(nrm, backend)
     pose, res = pose0, call(pose0, 0.0, "start")
     best_pose, best_cost = pose, res.cost
-    iterations, converged = 0, relative_step(res.step, pose) <= step_tol
+    cost, step, scale = res.cost, res.step, 1.0
+    iterations, converged = 0, relative_step(step, pose) <= step_tol
     while not converged and iterations < max_iterations:
-        prev_cost = res.cost
-        pose = apply_step(pose, res.step)
-        res = call(pose, 0.0, "candidate")
+        cand = apply_step(pose, scale * step)
+        res = call(cand, 0.0, "candidate" if scale == 1.0 else "halved")
         iterations += 1
-        if not math.isfinite(res.cost):
+        if not math.isfinite(res.cost) and not safeguard:
+            break
+        if safeguard and not _better(res.cost, cost):
+            if abs(res.cost - cost) <= cost_tol * cost:
+                converged = True  # no progress measurable at this precision
+            elif scale > MIN_STEP_SCALE:
+                scale /= 2
+                continue
             break
         call.mark_accepted()
-        if res.cost < best_cost:
-            best_pose, best_cost = pose, res.cost
-        converged = (abs(prev_cost - res.cost) <= cost_tol * prev_cost
-                     or relative_step(res.step, pose) <= step_tol)
+        converged = (abs(cost - res.cost) <= cost_tol * cost
+                     or relative_step(res.step, cand) <= step_tol)
+        pose, cost, step, scale = cand, res.cost, res.step, 1.0
+        if cost < best_cost:
+            best_pose, best_cost = pose, cost
     return DriverResult(best_pose, best_cost, iterations, len(call.history), converged,
                         tuple(call.history))
 

@@ -9,6 +9,11 @@ backend, and maps the pose back to the problem's frame.
 Privacy policy: the servers see how many invocations a frame makes, so a SIL frame makes
 at least ``min_invocations``, padded with dummy runs (``Backend.pad``) when the driver
 stops early. A DO frame is always one invocation, whatever the data.
+
+Where the 6x6 system is solved (``solve``): by default in SIL mode the circuit returns
+the normal equations and the client damps and solves them (sil.py says why that is safe
+in the offload setting); ``circuit`` solves inside, as the paper does, and is the only
+choice for DO.
 """
 
 from __future__ import annotations
@@ -19,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from snail_common.pnp.normal import UPPER
+from snail_common.pnp.sil import CLIENT
 from snail_common.pnp.spec import DO_ITERATIONS, DO_MAX_ITERATIONS, Spec
 
 from .backends import Backend, sil_values
@@ -30,6 +37,7 @@ from .reference import reprojection_rms
 from .types import IterationResult, Normalized, Pose
 
 MODES = ("sil", "do")
+SOLVES = ("client", "circuit")
 
 
 @dataclass(frozen=True)
@@ -43,6 +51,7 @@ class Options:
     min_invocations: int = 20
     pad_points: int = 0  # round n up to a multiple of this (0: no padding)
     do_iterations: int = DO_ITERATIONS
+    solve: str | None = None  # client or circuit; None: client for sil, circuit for do
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -56,6 +65,16 @@ class Options:
                              "(use --algorithm lm)")
         if not 1 <= self.do_iterations <= DO_MAX_ITERATIONS:
             raise ValueError(f"--do-iterations: must be in 1..{DO_MAX_ITERATIONS}")
+        if self.solve not in (None, *SOLVES):
+            raise ValueError(f"--solve: expected client or circuit, got {self.solve!r}")
+        if self.mode == "do" and self.solve == "client":
+            raise ValueError("--solve client: --mode do solves inside its circuit "
+                             "(use --solve circuit)")
+
+    @property
+    def solve_at(self) -> str:
+        """Where the step is solved: the client (default for sil) or the circuit."""
+        return self.solve or ("circuit" if self.mode == "do" else "client")
 
     def circuit_points(self, n: int) -> int:
         if self.pad_points <= 1:
@@ -65,7 +84,8 @@ class Options:
     def spec(self, n: int) -> Spec:
         """The circuit a problem of ``n`` points runs on."""
         iterations = self.do_iterations if self.mode == "do" else DO_ITERATIONS
-        return Spec(self.algorithm, self.mode, self.solver, self.circuit_points(n), iterations)
+        solver = CLIENT if self.solve_at == "client" else self.solver
+        return Spec(self.algorithm, self.mode, solver, self.circuit_points(n), iterations)
 
 
 @dataclass(frozen=True)
@@ -112,16 +132,62 @@ def localize(problem: Problem, options: Options, backend: Backend,
 
 def _solve_sil(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
                pose0: Pose) -> tuple[Pose, float, int, bool, list[float]]:
-    """The LM/GN driver, one SIL invocation per call."""
+    """The LM/GN driver, one SIL invocation per call (per new pose, when the client
+    solves)."""
+    walls: list[float] = []
 
     def iteration(problem: Normalized, pose: Pose, lam: float) -> IterationResult:
+        start = time.perf_counter()
         out = backend.run(spec, sil_values(spec, problem, pose, lam))
+        walls.append(time.perf_counter() - start)
         return IterationResult(step=np.asarray(out["step"], np.float64),
                                cost=float(out["cost"]))
 
-    result = run(options.algorithm, nrm, pose0, iteration, options.max_iterations)
-    return (result.pose, float(result.cost), result.iterations, result.converged,
-            [call.wall_s for call in result.history])
+    step_at = _ClientSolve(spec, backend, walls) if spec.solver == CLIENT else iteration
+    result = run(options.algorithm, nrm, pose0, step_at, options.max_iterations)
+    return result.pose, float(result.cost), result.iterations, result.converged, walls
+
+
+class _ClientSolve:
+    """Iterations whose circuit returns the normal equations and the cost: the damped
+    step is solved here, in float64, so asking again at the same pose with another
+    damping (a rejected LM step) runs no circuit. The last two poses are remembered: the
+    current one and its candidate."""
+
+    def __init__(self, spec: Spec, backend: Backend, walls: list[float]) -> None:
+        self.spec, self.backend, self.walls = spec, backend, walls
+        self._known: dict[bytes, tuple[np.ndarray, np.ndarray, float]] = {}
+
+    def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
+        key = pose.R.tobytes() + pose.t.tobytes()
+        if key not in self._known:
+            start = time.perf_counter()
+            out = self.backend.run(self.spec, sil_values(self.spec, problem, pose, lam))
+            self.walls.append(time.perf_counter() - start)
+            self._known[key] = (_symmetric(out["hess"]), np.asarray(out["grad"], np.float64),
+                                float(out["cost"]))
+            while len(self._known) > 2:
+                del self._known[next(iter(self._known))]
+        hess, grad, cost = self._known[key]
+        return IterationResult(step=damped_step(hess, grad, lam), cost=cost)
+
+
+def _symmetric(packed: np.ndarray) -> np.ndarray:
+    """The 6x6 matrix of its upper triangle packed row-major (normal.UPPER)."""
+    full = np.zeros((6, 6))
+    rows, cols = np.array(UPPER).T
+    full[rows, cols] = np.asarray(packed, np.float64)
+    full[cols, rows] = full[rows, cols]
+    return full
+
+
+def damped_step(hess: np.ndarray, grad: np.ndarray, lam: float) -> np.ndarray:
+    """The step solving (H + lam diag(H)) step = -g (least squares if H is singular; all
+    NaN if the circuit's numbers are not finite, which the driver then rejects)."""
+    system = hess + lam * np.diag(np.diag(hess))
+    if not (np.isfinite(system).all() and np.isfinite(grad).all()):
+        return np.full(6, np.nan)
+    return np.linalg.lstsq(system, -grad, rcond=None)[0]
 
 
 def _solve_do(spec: Spec, options: Options, backend: Backend, nrm: Normalized,

@@ -1,4 +1,10 @@
-"""The single-iteration (SIL) program: cost and step at one pose, for LM or GN.
+"""The single-iteration (SIL) program: cost and step at one pose, for LM or GN; or, with
+solver ``client``, the cost and the normal equations, which the client damps and solves.
+
+The ``client`` form is for the offload setting, where every input is the client's own:
+the normal equations are a function of them, so returning them tells the client nothing
+it could not compute, and it removes the sequential 6x6 solve (most of the AND depth at
+small n) from the circuit; a rejected LM step is re-damped with no secure invocation.
 
 Written once against fops.F, it is both the circuit (CircuitBackend) and its bit-identical
 float32 mirror (MirrorBackend). Inputs and outputs are named exactly like the circuit's
@@ -15,21 +21,25 @@ from .normal import UPPER, normal_equations
 from .svd import pinv_step, svd_solve, weighted_system
 
 ALGORITHMS = ("lm", "gn")
-SOLVERS = ("ldlt", "svd")
+CLIENT = "client"
+SOLVERS = ("ldlt", "svd", CLIENT)
 _DIAG = [UPPER.index((i, i)) for i in range(6)]
 
 
-def input_shapes(algorithm: str, n: int) -> dict[str, tuple[int, ...]]:
-    """Secret inputs of a SIL circuit, all float32: pose, damping (LM only), normalized image
-    points, centered map points and per-point per-axis weights."""
+def input_shapes(algorithm: str, n: int, solver: str = "ldlt") -> dict[str, tuple[int, ...]]:
+    """Secret inputs of a SIL circuit, all float32: pose, damping (LM solved in the
+    circuit only), normalized image points, centered map points and per-point per-axis
+    weights."""
     shapes = {"R": (3, 3), "t": (3,)}
-    if algorithm == "lm":
+    if algorithm == "lm" and solver != CLIENT:
         shapes["lam"] = ()
     shapes.update({"image": (n, 2), "world": (n, 3), "weights": (n, 2)})
     return shapes
 
 
 OUTPUT_SHAPES = {"step": (6,), "cost": ()}
+# J^T W J packed as normal.UPPER, J^T W r and the cost
+NORMAL_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": ()}
 
 Solver = Callable[[F, F], F]
 
@@ -54,6 +64,10 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str) -> dict[str, 
     input pose."""
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
+    if solver == CLIENT:
+        hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
+                                            inputs["world"], inputs["weights"])
+        return {"hess": hess, "grad": grad, "cost": cost}
     if algorithm == "gn" and solver == "svd":  # the paper's GN: -pinv(J) r on the 2n x 6 J
         jac, res, cost = weighted_system(inputs["R"], inputs["t"], inputs["image"],
                                          inputs["world"], inputs["weights"])

@@ -1,7 +1,9 @@
 """Localization circuits by name: what each computes (``Spec``), its netlist, its mirror.
 
 A circuit id names everything that shapes the circuit, e.g. ``lm-sil-ldlt-n6``; the
-registry knows it as ``loc/lm-sil-ldlt-n6`` (family.py registers the family).
+registry knows it as ``loc/lm-sil-ldlt-n6`` (family.py registers the family). The circuit
+that returns the normal equations for the client to solve (solver ``client``) is the
+same for LM and GN: ``ne-sil-n6``.
 """
 
 from __future__ import annotations
@@ -19,7 +21,15 @@ from .do import MAX_ITERATIONS as DO_MAX_ITERATIONS
 from .do import OUTPUT_SHAPES as DO_OUTPUT_SHAPES
 from .do import do_program
 from .fops import CircuitBackend, F, MirrorBackend
-from .sil import ALGORITHMS, OUTPUT_SHAPES, SOLVERS, input_shapes, sil_program
+from .sil import (
+    ALGORITHMS,
+    CLIENT,
+    NORMAL_OUTPUT_SHAPES,
+    OUTPUT_SHAPES,
+    SOLVERS,
+    input_shapes,
+    sil_program,
+)
 
 MODES = ("sil", "do")
 MAX_POINTS = 4096
@@ -27,8 +37,9 @@ MAX_POINTS = 4096
 # point buys ~500 fewer AND levels (~1,000 engine steps at ~10 us each), which pays off
 # below ~50 points at ~10 M AND/s.
 SHALLOW_POINTS = 32
-ID_PATTERN = re.compile(r"^(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"
-                        r"-n(?P<points>[1-9][0-9]{0,3})(?:-i(?P<iterations>[1-9][0-9]?))?$")
+ID_PATTERN = re.compile(r"^(?:(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"
+                        r"-n(?P<points>[1-9][0-9]{0,3})(?:-i(?P<iterations>[1-9][0-9]?))?"
+                        r"|ne-sil-n(?P<normal_points>[1-9][0-9]{0,3}))$")
 
 
 @dataclass(frozen=True)
@@ -50,6 +61,9 @@ class Spec:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if self.mode == "do" and self.solver == CLIENT:
+            raise ValueError("solver 'client' is for mode 'sil': the data-oblivious circuit "
+                             "solves inside")
         if self.mode == "do" and self.algorithm != "lm":
             raise ValueError("mode 'do' is the data-oblivious LM baseline: algorithm must be lm")
         if not 4 <= self.points <= MAX_POINTS:
@@ -63,6 +77,8 @@ class Spec:
 
     @property
     def circuit_id(self) -> str:
+        if self.solver == CLIENT:
+            return f"ne-sil-n{self.points}"
         base = f"{self.algorithm}-{self.mode}-{self.solver}-n{self.points}"
         return base if self.iterations == DO_ITERATIONS else f"{base}-i{self.iterations}"
 
@@ -77,6 +93,8 @@ class Spec:
         if not match:
             raise ValueError(f"not a localization circuit id: {circuit_id!r} "
                              f"(expected e.g. 'lm-sil-ldlt-n6')")
+        if match["normal_points"]:
+            return cls("lm", "sil", CLIENT, int(match["normal_points"]))
         iterations = int(match["iterations"] or DO_ITERATIONS)
         return cls(match["algorithm"], match["mode"], match["solver"], int(match["points"]),
                    iterations)
@@ -87,7 +105,8 @@ def build(spec: Spec) -> Circuit:
     b = CircuitBuilder()
     be = CircuitBackend(b, depth_opt=spec.points <= SHALLOW_POINTS)
     inputs = {name: F(be, b.input(name, shape, bits=32, dtype="float32"))
-              for name, shape in input_shapes(spec.algorithm, spec.points).items()}
+              for name, shape in input_shapes(spec.algorithm, spec.points,
+                                              spec.solver).items()}
     outputs = program(spec, inputs)
     for name in output_shapes(spec):
         b.output(name, outputs[name].v, dtype="float32")
@@ -95,8 +114,11 @@ def build(spec: Spec) -> Circuit:
 
 
 def output_shapes(spec: Spec) -> dict[str, tuple[int, ...]]:
-    """SIL: the step and the cost; DO: the final pose and its cost."""
-    return DO_OUTPUT_SHAPES if spec.mode == "do" else OUTPUT_SHAPES
+    """SIL: the step and the cost (or the normal equations and the cost, for the client
+    to solve); DO: the final pose and its cost."""
+    if spec.mode == "do":
+        return DO_OUTPUT_SHAPES
+    return NORMAL_OUTPUT_SHAPES if spec.solver == CLIENT else OUTPUT_SHAPES
 
 
 def program(spec: Spec, inputs: dict[str, F]) -> dict[str, F]:
@@ -108,7 +130,7 @@ def program(spec: Spec, inputs: dict[str, F]) -> dict[str, F]:
 def run_mirror(spec: Spec, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The float32 mirror of the circuit: same inputs, bit-identical outputs."""
     be = MirrorBackend()
-    shapes = input_shapes(spec.algorithm, spec.points)
+    shapes = input_shapes(spec.algorithm, spec.points, spec.solver)
     missing = sorted(set(shapes) - set(values))
     if missing:
         raise ValueError(f"missing inputs {missing}")
