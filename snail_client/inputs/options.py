@@ -1,0 +1,110 @@
+"""The command line's input flags: ``localize --image/--tag-map/--camera`` (or
+``--input``) and ``track --image-dir`` (or ``--input``); which go together is checked here
+so the commands stay about running frames."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import click
+
+from snail_common.loc.problem import Problem, ProblemError, load_problem, read_sequence
+
+from .sources import image_problem, image_sequence, load_image_inputs, save_problem
+
+_FILE = click.Path(exists=True, dir_okay=False)
+
+
+def _decorate(fn: Callable, decorators: list[Callable]) -> Callable:
+    for decorate in reversed(decorators):
+        fn = decorate(fn)
+    return fn
+
+
+def _image_inputs() -> list[Callable]:
+    return [
+        click.option("--tag-map", type=_FILE, metavar="MAP.json",
+                     help="Where the AprilTags are (snail-tagmap/1)."),
+        click.option("--camera", type=_FILE, metavar="CAM.json",
+                     help="The camera's intrinsics and distortion (snail-camera/1)."),
+    ]
+
+
+def localize_inputs(fn: Callable) -> Callable:
+    """--input, or --image with --tag-map and --camera; --save-problem."""
+    return _decorate(fn, [
+        click.option("--input", "input_path", type=_FILE,
+                     help="Problem file (snail-problem/1 JSON)."),
+        click.option("--image", type=_FILE, metavar="IMG",
+                     help="Camera image with AprilTag 36h11 markers (needs --tag-map and "
+                          "--camera): the tags' corners are matched to the map and a first "
+                          "pose is found in the clear (IPPE), on this machine."),
+        *_image_inputs(),
+        click.option("--save-problem", type=click.Path(dir_okay=False), metavar="P.json",
+                     help="Write the snail-problem/1 built from --image, to replay the run."),
+    ])
+
+
+def track_inputs(fn: Callable) -> Callable:
+    """--input, or --image-dir with --tag-map and --camera."""
+    return _decorate(fn, [
+        click.option("--input", "input_path", type=click.Path(exists=True),
+                     help="Sequence: JSON Lines, a JSON array of problems, one problem, or "
+                          "a folder of problem files (name order)."),
+        click.option("--image-dir", type=click.Path(exists=True, file_okay=False),
+                     metavar="DIR",
+                     help="A folder of camera images taken in name order (needs --tag-map "
+                          "and --camera); each frame starts from the last trusted pose."),
+        *_image_inputs(),
+    ])
+
+
+def _one_source(sources: dict[str, str | None]) -> str:
+    given = [flag for flag, value in sources.items() if value]
+    if len(given) != 1:
+        raise click.UsageError(f"give exactly one of {', '.join(sources)}"
+                               + (f" (got {', '.join(given)})" if given else ""))
+    return given[0]
+
+
+def _check_image_flags(kw: dict, image_flag: str | None) -> None:
+    if image_flag:
+        missing = [f for f, k in (("--tag-map", "tag_map"), ("--camera", "camera"))
+                   if not kw.get(k)]
+        if missing:
+            raise click.UsageError(f"{image_flag} needs {' and '.join(missing)}")
+    else:
+        extra = [f for f, k in (("--tag-map", "tag_map"), ("--camera", "camera"),
+                                ("--save-problem", "save_problem")) if kw.get(k)]
+        if extra:
+            raise click.UsageError(f"{', '.join(extra)}: only with an image input")
+
+
+def load_frame(input_path: str | None, kw: dict) -> tuple[str, Problem]:
+    """(what to name in messages, the problem) for ``localize``; ProblemError names the
+    file at fault, click.UsageError a flag."""
+    flag = _one_source({"--input": input_path, "--image": kw.get("image")})
+    _check_image_flags(kw, "--image" if flag == "--image" else None)
+    if flag == "--input":
+        try:
+            return input_path, load_problem(input_path)
+        except ProblemError as exc:
+            raise ProblemError(f"{input_path}: {exc}") from None
+    tagmap, camera = load_image_inputs(kw["tag_map"], kw["camera"])
+    problem = image_problem(kw["image"], tagmap, camera)
+    if kw.get("save_problem"):
+        save_problem(problem, kw["save_problem"])
+    return kw["image"], problem
+
+
+def load_frames(input_path: str | None, kw: dict) -> list[tuple[str, Problem | ProblemError]]:
+    """``track``'s named frames (a frame that cannot be built is its ProblemError)."""
+    flag = _one_source({"--input": input_path, "--image-dir": kw.get("image_dir")})
+    _check_image_flags(kw, "--image-dir" if flag == "--image-dir" else None)
+    if flag == "--input":
+        try:
+            return read_sequence(input_path)
+        except ProblemError as exc:
+            raise ProblemError(f"{input_path}: {exc}") from None
+    tagmap, camera = load_image_inputs(kw["tag_map"], kw["camera"])
+    return image_sequence(kw["image_dir"], tagmap, camera)
