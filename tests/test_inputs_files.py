@@ -137,7 +137,7 @@ def test_the_command_line_says_it_in_one_line_with_exit_2(tmp_path, which):
     (["--image", "IMG"], "--image needs --tag-map and --camera"),
     (["--image", "IMG", "--input", "IMG"], "exactly one of --input, --image"),
     ([], "exactly one of --input, --image"),
-    (["--input", "IMG", "--camera", "IMG"], "--camera: only with an image input"),
+    (["--input", "IMG", "--camera", "IMG"], "--camera: only with --image or --image-dir"),
 ])
 def test_flags_that_do_not_go_together_are_usage_errors(tmp_path, args, message):
     image = tmp_path / "img.png"
