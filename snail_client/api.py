@@ -58,14 +58,18 @@ class Pose:
 class Localizer:
     """A session with the two servers for a stream of frames (see the module's example).
 
-    ``camera`` and ``tag_map`` (objects or file paths) are needed for images; options are
-    the command line's (``backend``, ``algorithm``, ``min_invocations``, ...).
+    ``camera`` and ``tag_map`` (objects or file paths) are needed for images; ``max_tags``
+    keeps the largest tags in view (with ``pad_points=4 * max_tags`` every frame has the
+    same number of points: one circuit, and the servers cannot count the tags); options
+    are the command line's (``backend``, ``algorithm``, ``min_invocations``, ...).
     """
 
     def __init__(self, camera: Camera | str | Path | None = None,
-                 tag_map: TagMap | str | Path | None = None, **options: object) -> None:
+                 tag_map: TagMap | str | Path | None = None, max_tags: int | None = None,
+                 **options: object) -> None:
         self.camera = load_camera(camera) if isinstance(camera, (str, Path)) else camera
         self.tag_map = load_tagmap(tag_map) if isinstance(tag_map, (str, Path)) else tag_map
+        self.max_tags = max_tags
         self.options = Options(**options)  # ValueError naming a bad option
         self._stack = contextlib.ExitStack()
         self.backend = self._stack.enter_context(backend_for(self.options))
@@ -80,7 +84,8 @@ class Localizer:
             raise ValueError("camera and tag_map: needed to localize images")
         if not isinstance(image, np.ndarray):
             image = read_image(image)
-        problem, matched = problem_from_image(image, self.tag_map, self.camera)
+        problem, matched = problem_from_image(image, self.tag_map, self.camera,
+                                              self.max_tags)
         return self.localize_problem(problem, initial, tuple(matched.tag_ids))
 
     def localize_points(self, points2d: np.ndarray, points3d: np.ndarray,

@@ -71,11 +71,14 @@ def _ideal(tagmap: TagMap, K: np.ndarray, size: tuple[int, int], pose: PoseVecto
     for tag in tagmap.tags.values():
         R_ct = R @ so3_exp(tag.rvec)
         t_ct = R @ tag.tvec + pose.tvec
-        if t_ct[2] <= 0 or R_ct[2, 2] >= 0:  # behind the camera, or seen from its back
-            continue
-        H = K @ np.column_stack([R_ct[:, 0], R_ct[:, 1], t_ct]) @ _bitmap_to_tag(tag)
         bitmap = tag_bitmap(tag.id)
         h, w = bitmap.shape
+        plane = _bitmap_to_tag(tag)
+        outline_tag = plane @ np.array([[-1.0, w, w, -1.0], [-1.0, -1.0, h, h], [1, 1, 1, 1]])
+        depth = R_ct[2, :2] @ outline_tag[:2] + t_ct[2]
+        if depth.min() <= 1e-3 or R_ct[2, 2] >= 0:  # (partly) behind, or seen from its back
+            continue
+        H = K @ np.column_stack([R_ct[:, 0], R_ct[:, 1], t_ct]) @ plane
         outline = cv2.perspectiveTransform(
             np.array([[[-1.0, -1.0], [w, -1.0], [w, h], [-1.0, h]]]), H)[0]
         x0, y0 = np.maximum(np.floor(outline.min(axis=0)).astype(int), 0)

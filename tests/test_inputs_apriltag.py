@@ -191,3 +191,15 @@ def test_a_camera_without_size_cannot_check_the_image_but_still_works():
     assert problem.image_size is None and problem.n == 4
     with pytest.raises(InputError, match="no tag36h11 tag detected"):
         problem_from_image(np.zeros((480, 640), np.uint8), scene.tagmap, camera)
+
+
+def test_max_tags_keeps_the_largest_tags_in_view():
+    rng = np.random.default_rng(14)
+    scene = random_tag_scene(rng, tags=4, obliquity=(60, 70))
+    image = render(scene.tagmap, scene.camera, scene.pose, scene.look, rng)
+    found = detect(image)
+    areas = {int(i): abs(cv2.contourArea(c.astype(np.float32)))
+             for i, c in zip(found.ids, found.corners)}
+    largest = sorted(sorted(areas, key=areas.get)[-2:])
+    problem, matched = problem_from_image(image, scene.tagmap, scene.camera, max_tags=2)
+    assert matched.tag_ids == largest and problem.n == 8

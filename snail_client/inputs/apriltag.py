@@ -76,9 +76,10 @@ def detect(image: np.ndarray, family: str = "tag36h11") -> Detections:
                       np.array(corners, np.float64).reshape(-1, 4, 2))
 
 
-def match(detections: Detections, tagmap: TagMap) -> Matched:
-    """The map's tags among the detections; InputError naming what was detected when none
-    of them is in the map."""
+def match(detections: Detections, tagmap: TagMap, max_tags: int | None = None) -> Matched:
+    """The map's tags among the detections (the ``max_tags`` largest in the image when
+    given: a fixed number of points is one circuit and hides how many tags are in view);
+    InputError naming what was detected when none of them is in the map."""
     ids, counts = np.unique(detections.ids, return_counts=True)
     repeated = [int(i) for i in ids[counts > 1]]
     usable = [int(i) for i in ids[counts == 1] if int(i) in tagmap.tags]
@@ -86,6 +87,10 @@ def match(detections: Detections, tagmap: TagMap) -> Matched:
     if not usable:
         raise InputError(_nothing_mapped(detections, unmapped, repeated, tagmap))
     rows = [int(np.flatnonzero(detections.ids == i)[0]) for i in usable]
+    if max_tags is not None and len(rows) > max_tags:
+        areas = [_area(detections.corners[r]) for r in rows]
+        keep = sorted(np.argsort(areas)[::-1][:max_tags])
+        usable, rows = [usable[k] for k in keep], [rows[k] for k in keep]
     p2 = detections.corners[rows].reshape(-1, 2)
     p3 = np.concatenate([tagmap.tags[i].corners_world() for i in usable])
     return Matched(usable, p2, p3, unmapped, repeated)
@@ -109,8 +114,7 @@ def initial_pose(matched: Matched, tagmap: TagMap, camera: Camera) -> PoseVector
     """IPPE on the largest matched tag, composed with that tag's pose in the map; of its
     two solutions, the one with the smaller reprojection error over all matched corners."""
     quads = matched.points2d.reshape(-1, 4, 2)
-    areas = [abs(cv2.contourArea(q.astype(np.float32))) for q in quads]
-    best = int(np.argmax(areas))
+    best = int(np.argmax([_area(q) for q in quads]))
     tag = tagmap.tags[matched.tag_ids[best]]
     count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
         tag.corners_tag(), quads[best], camera.K, camera.dist,
@@ -128,20 +132,24 @@ def initial_pose(matched: Matched, tagmap: TagMap, camera: Camera) -> PoseVector
     return candidates[int(np.argmin(errors))]
 
 
+def _area(quad: np.ndarray) -> float:
+    return abs(cv2.contourArea(quad.astype(np.float32)))
+
+
 def _reprojection(matched: Matched, camera: Camera, pose: PoseVectors) -> float:
     projected, _ = cv2.projectPoints(matched.points3d, pose.rvec, pose.tvec, camera.K,
                                      camera.dist)
     return float(np.sum((projected.reshape(-1, 2) - matched.points2d) ** 2))
 
 
-def problem_from_image(image: np.ndarray, tagmap: TagMap,
-                       camera: Camera) -> tuple[Problem, Matched]:
+def problem_from_image(image: np.ndarray, tagmap: TagMap, camera: Camera,
+                       max_tags: int | None = None) -> tuple[Problem, Matched]:
     """The snail-problem of one image: matched corners as observed (the problem carries the
     camera's distortion; the client undistorts before any circuit), the IPPE first pose."""
     if camera.size is not None and (image.shape[1], image.shape[0]) != camera.size:
         raise InputError(f"image: {image.shape[1]}x{image.shape[0]} pixels but the camera "
                          f"file is for {camera.size[0]}x{camera.size[1]}")
-    matched = match(detect(image, tagmap.family), tagmap)
+    matched = match(detect(image, tagmap.family), tagmap, max_tags)
     problem = Problem(K=camera.K, dist=camera.dist, points2d=matched.points2d,
                       points3d=matched.points3d,
                       initial_pose=initial_pose(matched, tagmap, camera),
