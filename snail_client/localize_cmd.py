@@ -164,7 +164,8 @@ def _progress(backend: object, total: int, desc: str) -> Iterator[None]:
 @localize_inputs
 @_options
 def localize_cmd(input_path: str | None, as_json: bool, output: str | None, **kw) -> None:
-    """Find the camera pose of one image privately, from a problem file or a camera image.
+    """Find the camera pose of one image privately: from a problem file, a camera image
+    with AprilTags, or an image of a COLMAP model.
 
     Exit status: 0 a trusted pose; 1 the run failed; 2 bad usage or input; 3 a pose came
     back but is not trusted (status not_converged, degenerate, bad_fit or behind_camera;
