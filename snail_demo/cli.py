@@ -79,6 +79,10 @@ def turbo(out_dir: str, backend: str, link_delay_ms: float, min_invocations: int
     the robot ends within 2 cm and 2 degrees of the target, else 3."""
     from .turbo_run import run_turbo  # imports the drawing only for this command
 
+    if link_delay_ms and backend != "garbled":
+        raise click.UsageError("--link-delay-ms: only with --backend garbled (cleartext has "
+                               "no links)")
+
     final = run_turbo(Path(out_dir), backend, link_delay_ms, min_invocations, max_steps,
                       seed)
     click.echo(f"{'reached' if final['reached'] else 'missed'} the target in "

@@ -34,7 +34,7 @@ def run_turbo(out: Path, backend: str, link_delay_ms: float, min_invocations: in
                    min_invocations=min_invocations, max_tags=MAX_TAGS,
                    pad_points=4 * MAX_TAGS) as loc, bar(
             max_steps, "control steps", unit="step") as progress:
-        if link_delay_ms and backend == "garbled":
+        if link_delay_ms:
             delay = 2 * link_delay_ms / 1000
             loc.backend.on_invocation = lambda: time.sleep(delay)
 

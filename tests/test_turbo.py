@@ -10,7 +10,9 @@ import math
 import cv2
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from snail_demo.cli import main as demo
 from snail_demo.turbo import RobotPose, control, room
 from snail_demo.turbo_run import TARGET, run_turbo
 
@@ -67,3 +69,9 @@ def test_a_run_reaches_the_target_and_writes_log_video_and_plot(tmp_path):
     assert ok and picture.shape[1] == 2 * picture.shape[0] + 160  # 640x480 + 480x480
     plot = cv2.imread(str(tmp_path / "trajectory.png"))
     assert plot is not None and plot.shape == (720, 720, 3)
+
+
+def test_a_link_delay_needs_links():
+    out = CliRunner().invoke(demo, ["turbo", "--out", "x", "--backend", "cleartext",
+                                    "--link-delay-ms", "20"])
+    assert out.exit_code == 2 and "--link-delay-ms: only with --backend garbled" in out.output
