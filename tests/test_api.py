@@ -83,7 +83,8 @@ def test_bad_options_and_missing_inputs_are_named(walk):
 
 def test_a_garbled_session_keeps_its_connections(walk, monkeypatch):
     """Three frames over one session: two TLS connections in all (one per server), every
-    frame padded to min_invocations, poses as the cleartext circuit's."""
+    frame padded to min_invocations, poses as the cleartext circuit's. One tag per frame
+    (max_tags=1, n = 4: the circuit the other image tests compile)."""
     scene, poses, images = walk
     opened = []
     real_connect = secure.connect
@@ -94,14 +95,14 @@ def test_a_garbled_session_keeps_its_connections(walk, monkeypatch):
 
     monkeypatch.setattr(secure, "connect", counting)
     with Localizer(camera=scene.camera, tag_map=scene.tagmap, backend="garbled",
-                   min_invocations=3) as loc:
+                   min_invocations=3, max_tags=1) as loc:
         garbled = [loc.localize_image(image) for image in images[:3]]
     with Localizer(camera=scene.camera, tag_map=scene.tagmap, backend="cleartext",
-                   min_invocations=0) as loc:
+                   min_invocations=0, max_tags=1) as loc:
         clear = [loc.localize_image(image) for image in images[:3]]
     assert sorted(opened) == ["evaluator", "garbler"]
     for g, c, truth in zip(garbled, clear, poses):
-        assert g.trusted and g.record["invocations"] >= 3
+        assert g.trusted and g.record["invocations"] >= 3 and len(g.tag_ids) == 1
         assert g.record["rvec"] == c.record["rvec"] and g.record["tvec"] == c.record["tvec"]
         assert pose_error(g.rvec, g.tvec, PoseVectors(truth.rvec, truth.tvec))[
             "rotation_deg"] < 1.0
