@@ -15,10 +15,11 @@ from pathlib import Path
 import click
 import numpy as np
 
-from snail_common.loc.problem import PoseVectors, ProblemError, load_problem, read_sequence
+from snail_common.loc.problem import PoseVectors, ProblemError
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
 from snail_common.net.tls import TLSFileError
 
+from .inputs.options import load_frame, load_frames, localize_inputs, track_inputs
 from .localize import BACKENDS, Options, backend_for, localize
 from .progress import bar
 from .secure import DEFAULT_BUSY_WAIT, ServiceError
@@ -170,21 +171,20 @@ def _progress(backend: object, total: int, desc: str) -> Iterator[None]:
 
 
 @click.command("localize")
-@click.option("--input", "input_path", required=True,
-              type=click.Path(exists=True, dir_okay=False),
-              help="Problem file (snail-problem/1 JSON).")
+@localize_inputs
 @_options
-def localize_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> None:
-    """Find the camera pose of one image privately.
+def localize_cmd(input_path: str | None, as_json: bool, output: str | None, **kw) -> None:
+    """Find the camera pose of one image privately: from a problem file, a camera image
+    with AprilTags, or an image of a COLMAP model.
 
     Exit status: 0 a trusted pose; 1 the run failed; 2 bad usage or input; 3 a pose came
     back but is not trusted (status not_converged, degenerate, bad_fit or behind_camera;
     one line on stderr says why)."""
     options = _make_options(kw)
     try:
-        problem = load_problem(input_path)
+        input_path, problem = load_frame(input_path, kw)
     except ProblemError as e:
-        _fail(2, f"{input_path}: {e}")
+        _fail(2, str(e))
     try:
         with backend_for(options) as backend, _progress(
                 backend, max(options.min_invocations, 1), "secure runs"):
@@ -204,13 +204,11 @@ def localize_cmd(input_path: str, as_json: bool, output: str | None, **kw) -> No
 
 
 @click.command("track")
-@click.option("--input", "input_path", required=True, type=click.Path(exists=True),
-              help="Sequence: JSON Lines, a JSON array of problems, one problem, or a "
-                   "folder of problem files (name order).")
+@track_inputs
 @click.option("--fail-fast", is_flag=True,
               help="Stop at the first frame that fails or is not trusted.")
 @_options
-def track_cmd(input_path: str, as_json: bool, output: str | None, fail_fast: bool,
+def track_cmd(input_path: str | None, as_json: bool, output: str | None, fail_fast: bool,
               **kw) -> None:
     """Localize a sequence, each frame starting from the previous trusted pose.
 
@@ -220,9 +218,9 @@ def track_cmd(input_path: str, as_json: bool, output: str | None, fail_fast: boo
     sequence cannot be read; 3 some frame failed or is not trusted."""
     options = _make_options(kw)
     try:
-        frames = read_sequence(input_path)
+        frames = load_frames(input_path, kw)
     except ProblemError as e:
-        _fail(2, f"{input_path}: {e}")
+        _fail(2, str(e))
     records: list[dict] = []
     worst = 0
     try:

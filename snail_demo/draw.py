@@ -1,0 +1,95 @@
+"""Pictures of a Turbo run, drawn with OpenCV (no plotting dependency): the camera view
+with the detected tags and the estimated pose, and a top-down map of the room with the
+true and estimated paths."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from snail_client.api import Pose
+from snail_client.inputs.apriltag import detect
+from snail_client.inputs.camera import Camera
+from snail_client.inputs.tagmap import TagMap
+
+from .turbo import RobotPose, Run
+
+MAP_PX = 480
+BOUNDS = (-0.2, 2.4, -1.2, 1.2)  # x0, x1, y0, y1 of the room in metres
+GREEN, RED, BLUE, GREY, BLACK = (60, 170, 60), (40, 40, 220), (200, 120, 30), (150,) * 3, (0,) * 3
+
+
+def _to_px(x: float, y: float, size: int) -> tuple[int, int]:
+    """World (x forward, y left) to map pixels (x up the image, y to the left)."""
+    x0, x1, y0, y1 = BOUNDS
+    scale = size / max(x1 - x0, y1 - y0)
+    return round((y1 - y) * scale), round((x1 - x) * scale)
+
+
+def camera_view(image: np.ndarray, pose: Pose | None, tagmap: TagMap,
+                camera: Camera) -> np.ndarray:
+    """The image with each detected tag outlined (green) and the map's tags projected with
+    the estimated pose (red corners): where they sit on the green, the pose is right."""
+    view = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    found = detect(image)
+    for corners in found.corners:
+        cv2.polylines(view, [np.round(corners).astype(np.int32)], True, GREEN, 2)
+    if pose is not None:
+        for tag in tagmap.tags.values():
+            pts, _ = cv2.projectPoints(tag.corners_world(), pose.rvec, pose.tvec, camera.K,
+                                       camera.dist)
+            R, _ = cv2.Rodrigues(pose.rvec)
+            if (tag.corners_world() @ R.T + pose.tvec)[:, 2].min() <= 0:
+                continue
+            for p in pts.reshape(-1, 2):
+                if np.all(np.abs(p) < 4000):
+                    cv2.circle(view, (int(p[0]), int(p[1])), 3, RED, -1)
+    return view
+
+
+def top_down(run: Run, target: RobotPose, tagmap: TagMap, size: int = MAP_PX) -> np.ndarray:
+    """The room from above: tags (black), target (grey), true path (blue), estimates
+    (red), the robot now (blue triangle)."""
+    canvas = np.full((size, size, 3), 255, np.uint8)
+    for tag in tagmap.tags.values():
+        ends = tag.corners_world()[[0, 1]]
+        cv2.line(canvas, _to_px(*ends[0][:2], size), _to_px(*ends[1][:2], size), BLACK, 3)
+    _robot(canvas, target, GREY, size)
+    true = [_to_px(p.x, p.y, size) for p in run.true_path]
+    if len(true) > 1:
+        cv2.polylines(canvas, [np.array(true, np.int32)], False, BLUE, 2)
+    for p in run.estimates:
+        cv2.circle(canvas, _to_px(p.x, p.y, size), 3, RED, -1)
+    if run.true_path:
+        _robot(canvas, run.true_path[-1], BLUE, size)
+    for k, (text, colour) in enumerate([("true path", BLUE), ("private estimates", RED),
+                                        ("target", GREY), ("tags", BLACK)]):
+        cv2.putText(canvas, text, (10, size - 70 + 18 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    colour, 1, cv2.LINE_AA)
+    return canvas
+
+
+def _robot(canvas: np.ndarray, pose: RobotPose, colour: tuple, size: int) -> None:
+    r = 0.06
+    tip = (pose.x + r * math.cos(pose.heading), pose.y + r * math.sin(pose.heading))
+    left = (pose.x + r * math.cos(pose.heading + 2.5), pose.y + r * math.sin(pose.heading + 2.5))
+    right = (pose.x + r * math.cos(pose.heading - 2.5), pose.y + r * math.sin(pose.heading - 2.5))
+    pts = np.array([_to_px(*p, size) for p in (tip, left, right)], np.int32)
+    cv2.fillPoly(canvas, [pts], colour)
+
+
+def frame(run: Run, image: np.ndarray, pose: Pose | None, target: RobotPose,
+          tagmap: TagMap, camera: Camera) -> np.ndarray:
+    """One video frame: camera view and map side by side, with the step's numbers."""
+    left = camera_view(image, pose, tagmap, camera)
+    step = run.steps[-1]
+    lines = [f"step {len(run.steps)}  {step['status']}  {step['iterations']} iterations, "
+             f"{step['invocations']} secure runs",
+             f"{step['seconds']:.2f} s, {step['bytes'] / 1e6:.1f} MB, client CPU "
+             f"{step['client_cpu_s']:.2f} s, error {100 * step['position_error_m']:.1f} cm"]
+    for k, text in enumerate(lines):
+        cv2.putText(left, text, (8, 20 + 20 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 200, 255),
+                    1, cv2.LINE_AA)
+    return np.hstack([left, top_down(run, target, tagmap, left.shape[0])])
