@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 import click
 import numpy as np
@@ -227,6 +228,48 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
             click.echo(f"{'':>20}  {row['clients']} clients: "
                        f"{row['throughput_inv_per_s']:.1f} invocations/s in total, "
                        f"slowest client's median {worst:.3f} s")
+
+
+@main.command("fuzz")
+@click.option("--target", "targets", multiple=True, metavar="NAME",
+              help="A parser to fuzz (repeatable; default: all of them: frames, message, "
+                   "problem, sequence, camera, tagmap, colmap_bin, colmap_txt, revoked).")
+@click.option("--runs", type=click.IntRange(1), default=1_000_000, show_default=True,
+              help="Inputs per target.")
+@click.option("--seconds", type=click.IntRange(1), default=3600, show_default=True,
+              help="Time limit per target.")
+@click.option("--corpus", type=click.Path(file_okay=False, path_type=Path),
+              help="Keep each target's corpus and findings in DIR/TARGET (default: a "
+                   "temporary folder).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def fuzz_cmd(targets: tuple[str, ...], runs: int, seconds: int, corpus: Path | None,
+             as_json: bool) -> None:
+    """Coverage-guided fuzzing (atheris) of every parser of untrusted bytes, each from
+    valid seeds, with a 5 s limit per input and 1 GiB of memory: exit 1 on any crash,
+    hang or runaway allocation, with the input kept. Needs the fuzz extra."""
+    try:
+        import atheris  # noqa: F401
+    except ImportError:
+        click.echo("snail-bench: fuzz needs atheris: pip install 'snail[fuzz]'", err=True)
+        sys.exit(2)
+    from .fuzz import fuzz
+    from .fuzz_targets import TARGETS
+
+    unknown = sorted(set(targets) - set(TARGETS))
+    if unknown:
+        raise click.UsageError(f"--target: unknown {', '.join(unknown)}; choose from "
+                               f"{', '.join(TARGETS)}")
+    report = {}
+    for name in targets or TARGETS:
+        report[name] = fuzz(name, runs, seconds, corpus / name if corpus else None)
+        if not as_json:
+            row = report[name]
+            click.echo(f"{name:>12}: {row['runs']} inputs in {row['seconds']} s, "
+                       f"{'ok' if row['ok'] else 'FOUND ' + ', '.join(row['findings'])}")
+    if as_json:
+        click.echo(json.dumps({"fuzz": report}))
+    if not all(row["ok"] for row in report.values()):
+        sys.exit(1)
 
 
 def _spec(algorithm: str, mode: str, solve: str | None, solver: str, points: int):

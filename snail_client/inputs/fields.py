@@ -11,7 +11,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from snail_common.loc.problem import ProblemError
+from snail_common.loc.problem import ProblemError, parse_json
 
 T = TypeVar("T")
 
@@ -38,10 +38,9 @@ def read_json(path: str | Path) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read ({exc.__class__.__name__})") from None
     try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: "
-                         f"{exc.msg}") from None
+        return parse_json(text)
+    except ProblemError as exc:
+        raise InputError(f"{path}: {exc}") from None
 
 
 def obj(value: Any, where: str) -> dict:

@@ -139,12 +139,17 @@ def parse_problem(obj: Any, *, require_initial_pose: bool = True) -> Problem:
                    image_size=size)
 
 
-def _decode(text: str) -> Any:
+def parse_json(text: str) -> Any:
+    """JSON text; ProblemError saying where it is broken (or that it nests deeper than
+    the reader's recursion allows, rather than a RecursionError)."""
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
         raise ProblemError(f"invalid JSON at line {exc.lineno} column {exc.colno}: "
                            f"{exc.msg}") from None
+    except RecursionError:
+        raise ProblemError("invalid JSON: nested too deeply") from None
+
 
 
 def _read(path: Path) -> str:
@@ -156,7 +161,7 @@ def _read(path: Path) -> str:
 
 def load_problem(path: str | Path) -> Problem:
     """One problem file; it must carry an initial pose."""
-    return parse_problem(_decode(_read(Path(path))))
+    return parse_problem(parse_json(_read(Path(path))))
 
 
 def load_sequence(path: str | Path) -> list[Problem]:
@@ -185,7 +190,7 @@ def read_sequence(path: str | Path) -> list[tuple[str, Problem | ProblemError]]:
         text = _read(path)
         try:
             whole = json.loads(text)
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             whole = None  # JSON Lines, or broken: read line by line
         if isinstance(whole, list):
             items = [(f"[{i}]", _parse_named(f"[{i}]", obj, i == 0, parsed=True))
@@ -206,7 +211,7 @@ def read_sequence(path: str | Path) -> list[tuple[str, Problem | ProblemError]]:
 def _parse_named(where: str, source: Any, first: bool,
                  parsed: bool = False) -> Problem | ProblemError:
     try:
-        obj = source if parsed else _decode(source)
+        obj = source if parsed else parse_json(source)
         return parse_problem(obj, require_initial_pose=first)
     except ProblemError as exc:
         return ProblemError(f"{where}: {exc}")

@@ -1,0 +1,183 @@
+"""Fuzz targets: every parser of untrusted bytes, as a function of one byte string.
+
+A target returns normally or raises the error its parser documents for bad input (a
+``ProtocolError`` for frames, a ``ProblemError`` for files); anything else is a crash.
+Hangs and unbounded allocation are caught by the fuzzer's time and memory limits
+(``snail-bench fuzz``). ``seeds()`` gives each target valid inputs to mutate from.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import struct
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+from snail_client.inputs.camera import load_camera
+from snail_client.inputs.colmap import read_model
+from snail_client.inputs.tagmap import load_tagmap
+from snail_common.loc.problem import ProblemError, load_problem, read_sequence
+from snail_common.net import messages
+from snail_common.net.errors import ProtocolError
+from snail_common.net.frames import FrameReader, decode, encode_bytes
+from snail_common.net.tls import TLSFileError, read_revoked
+
+Target = Callable[[bytes], None]
+_SCRATCH = Path(os.environ.get("SNAIL_FUZZ_DIR") or
+                (Path("/dev/shm") if Path("/dev/shm").is_dir() else Path(tempfile.gettempdir())))
+
+
+def frames(data: bytes) -> None:
+    """A byte stream into the frame reader, cut where its first byte says: what a peer
+    on a TLS connection can send."""
+    reader = FrameReader(max_frame=1 << 16)
+    cut = 1 + (data[0] if data else 0)
+    for start in range(1, len(data), cut):
+        chunk = data[start:start + cut]
+        view = reader.buffer()
+        size = min(len(view), len(chunk))
+        view[:size] = chunk[:size]
+        reader.filled(size)
+
+
+def message(data: bytes) -> None:
+    """One frame body through decoding and the message catalogue's validators."""
+    decode(data)
+
+
+def _scratch_dir() -> Path:
+    path = _SCRATCH / f"snail-fuzz-{os.getpid()}"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _file(data: bytes, load: Callable[[Path], object]) -> None:
+    """``data`` as a file read by the loader the command line uses."""
+    path = _scratch_dir() / "input.json"
+    path.write_bytes(data)
+    load(path)
+
+
+def problem(data: bytes) -> None:
+    """A snail-problem/1 file."""
+    _file(data, load_problem)
+
+
+def camera(data: bytes) -> None:
+    """A snail-camera/1 file."""
+    _file(data, load_camera)
+
+
+def tagmap(data: bytes) -> None:
+    """A snail-tagmap/1 file."""
+    _file(data, load_tagmap)
+
+
+def sequence(data: bytes) -> None:
+    """A track sequence file (JSON lines, an array or one problem)."""
+    _file(data, read_sequence)
+
+
+def _colmap(data: bytes, kind: str) -> None:
+    """A COLMAP model: the input split into cameras, images and points3D files by its
+    first four bytes (two little-endian 16-bit lengths)."""
+    head, body = data[:4].ljust(4, b"\0"), data[4:]
+    a, b = struct.unpack("<HH", head)
+    parts = (body[:a], body[a:a + b], body[a + b:])
+    folder = _scratch_dir() / kind
+    folder.mkdir(exist_ok=True)
+    for name, part in zip(("cameras", "images", "points3D"), parts):
+        (folder / f"{name}.{kind}").write_bytes(part)
+    read_model(folder)
+
+
+def colmap_bin(data: bytes) -> None:
+    _colmap(data, "bin")
+
+
+def colmap_txt(data: bytes) -> None:
+    _colmap(data, "txt")
+
+
+def revoked(data: bytes) -> None:
+    """A daemon's revoked.txt."""
+    folder = _scratch_dir()
+    (folder / "revoked.txt").write_bytes(data)
+    read_revoked(folder)
+
+
+# each parser with the errors it documents for bad input (TLSFileError is a ValueError)
+PARSERS: dict[str, tuple[Target, tuple[type[Exception], ...]]] = {
+    "frames": (frames, (ProtocolError,)), "message": (message, (ProtocolError,)),
+    "problem": (problem, (ProblemError,)), "sequence": (sequence, (ProblemError,)),
+    "camera": (camera, (ProblemError,)), "tagmap": (tagmap, (ProblemError,)),
+    "colmap_bin": (colmap_bin, (ProblemError,)), "colmap_txt": (colmap_txt, (ProblemError,)),
+    "revoked": (revoked, (TLSFileError,)),
+}
+
+
+def _target(parse: Target, documented: tuple[type[Exception], ...]) -> Target:
+    def run(data: bytes) -> None:
+        with contextlib.suppress(*documented):
+            parse(data)
+    return run
+
+
+TARGETS: dict[str, Target] = {name: _target(*entry) for name, entry in PARSERS.items()}
+
+
+def seeds(target: str) -> list[bytes]:
+    """Valid inputs of ``target`` (mutation starts from what the parser accepts)."""
+    catalogue = [messages.make("hello", role="client", software="seed", max_frame=1 << 20),
+                 messages.make("session_start", sid=bytes(16), circuit="loc/ne-sil-n6",
+                               hash="0" * 64),
+                 messages.make("input_labels", sid=bytes(16), start=0, total=2,
+                               labels=bytes(32)),
+                 messages.error("busy", "full", bytes(16)),
+                 messages.make("health_request")]
+    wire = [encode_bytes(m) for m in catalogue]
+    problem_json = {"format": "snail-problem/1",
+                    "camera": {"fx": 800, "fy": 800, "cx": 320, "cy": 240,
+                               "dist": [0, 0, 0, 0, 0]},
+                    "points2d": [[300, 200], [340, 200], [340, 260], [300, 260]],
+                    "points3d": [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 1]],
+                    "initial_pose": {"rvec": [0, 0, 0], "tvec": [0, 0, 5]}}
+    by_target = {
+        "frames": [b"\x00" + b"".join(wire), b"\x03" + wire[0]],
+        "message": [w[4:] for w in wire],
+        "problem": [json.dumps(problem_json).encode()],
+        "sequence": [(json.dumps(problem_json) + "\n") .encode() * 2],
+        "camera": [json.dumps({"format": "snail-camera/1", "fx": 800, "fy": 810, "cx": 320,
+                               "cy": 240, "dist": [0.1, 0, 0, 0, 0], "width": 640,
+                               "height": 480}).encode()],
+        "tagmap": [json.dumps({"format": "snail-tagmap/1", "family": "tag36h11",
+                               "tags": [{"id": 3, "size": 0.1,
+                                         "rvec": [0, 0, 0], "tvec": [0, 0, 0]}]}).encode()],
+        "colmap_bin": [_colmap_bin_seed()],
+        "colmap_txt": [_colmap_txt_seed()],
+        "revoked": [b"# lost\nrobot7\n" + b"ab:" * 31 + b"cd\n"],
+    }
+    return by_target[target]
+
+
+def _split(*parts: bytes) -> bytes:
+    return struct.pack("<HH", len(parts[0]), len(parts[1])) + b"".join(parts)
+
+
+def _colmap_bin_seed() -> bytes:
+    cameras = struct.pack("<Q", 1) + struct.pack("<iiQQ", 1, 1, 640, 480) + \
+        struct.pack("<4d", 800, 800, 320, 240)
+    images = struct.pack("<Q", 1) + struct.pack("<i7di", 1, 1, 0, 0, 0, 0, 0, 5, 1) + \
+        b"a.png\0" + struct.pack("<Q", 1) + struct.pack("<ddq", 300.0, 200.0, 1)
+    points = struct.pack("<Q", 1) + struct.pack("<Q3d3Bd", 1, 0, 0, 0, 255, 0, 0, 0.5) + \
+        struct.pack("<Q", 1) + struct.pack("<ii", 1, 0)
+    return _split(cameras, images, points)
+
+
+def _colmap_txt_seed() -> bytes:
+    return _split(b"1 PINHOLE 640 480 800 800 320 240\n",
+                  b"1 1 0 0 0 0 0 5 1 a.png\n300 200 1\n",
+                  b"1 0 0 0 255 0 0 0.5 1 0\n")
