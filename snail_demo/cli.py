@@ -16,8 +16,19 @@ from .accuracy import POSITION_FRAC, ROTATION_DEG, sweep
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="snail", prog_name="snail-demo")
-def main() -> None:
+@click.option("-v", "--verbose", is_flag=True,
+              help="Also say on stderr what each control step or frame gave.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
+@click.pass_context
+def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
     """Private localization from rendered AprilTag images."""
+    if verbose and quiet:
+        raise click.UsageError("-v and -q: choose one")
+    ctx.obj = {"verbose": verbose, "quiet": quiet}
+
+
+def _flag(name: str) -> bool:
+    return bool((click.get_current_context().find_object(dict) or {}).get(name))
 
 
 @main.command()
@@ -34,7 +45,8 @@ def accuracy(frames: int, seed: int, backend: str, as_json: bool) -> None:
     the same IPPE first pose) within 0.5 % of the camera distance and 0.5 degrees: tags at
     20-70 degrees of obliquity, blur, noise and lens distortion."""
     options = Options(backend=backend, min_invocations=0)
-    with backend_for(options) as runner, bar(frames, "frames", False, "frame") as progress:
+    with backend_for(options) as runner, bar(frames, "frames", _flag("quiet"),
+                                              "frame") as progress:
         report = sweep(frames, seed, options, runner, progress)
     if as_json:
         click.echo(json.dumps(report, indent=1))
@@ -84,7 +96,7 @@ def turbo(out_dir: str, backend: str, link_delay_ms: float, min_invocations: int
                                "no links)")
 
     final = run_turbo(Path(out_dir), backend, link_delay_ms, min_invocations, max_steps,
-                      seed)
+                      seed, quiet=_flag("quiet"), verbose=_flag("verbose"))
     click.echo(f"{'reached' if final['reached'] else 'missed'} the target in "
                f"{final['steps']} steps: {100 * final['position_error_m']:.2f} cm, "
                f"{final['rotation_error_deg']:.2f} deg off; median "

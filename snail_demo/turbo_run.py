@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -24,7 +25,7 @@ MAX_TAGS = 4  # the 4 largest tags in view, padded to 16 points: one circuit for
 
 
 def run_turbo(out: Path, backend: str, link_delay_ms: float, min_invocations: int,
-              max_steps: int, seed: int) -> dict:
+              max_steps: int, seed: int, quiet: bool = False, verbose: bool = False) -> dict:
     """Drive from START to TARGET; returns the final summary (also in turbo.json)."""
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -33,7 +34,7 @@ def run_turbo(out: Path, backend: str, link_delay_ms: float, min_invocations: in
     with Localizer(camera=robot_camera(), tag_map=room(), backend=backend,
                    min_invocations=min_invocations, max_tags=MAX_TAGS,
                    pad_points=4 * MAX_TAGS) as loc, bar(
-            max_steps, "control steps", unit="step") as progress:
+            max_steps, "control steps", quiet, unit="step") as progress:
         if link_delay_ms:
             delay = 2 * link_delay_ms / 1000
             loc.backend.on_invocation = lambda: time.sleep(delay)
@@ -50,6 +51,9 @@ def run_turbo(out: Path, backend: str, link_delay_ms: float, min_invocations: in
                 cv2.imwrite(str(out / "first_frame.png"), picture)
             cv2.imwrite(str(out / "last_frame.png"), picture)
             progress.update(1)
+            if verbose:
+                progress.write(f"step {len(run.steps)}: {json.dumps(run.steps[-1])}",
+                               file=sys.stderr)
 
         try:
             run = drive(loc, START, TARGET, max_steps, rng, look, on_step)
