@@ -39,7 +39,7 @@ BAD_CAMERAS = [
     (("cx",), "320", "cx: not a number"),
     (("dist",), [0.1, 0.2, 0.3], "dist: expected 4, 5, 8, 12, 14 numbers"),
     (("dist", 1), None, "dist[1]: not a number"),
-    (("width",), 0, "width: expected an integer >= 1"),
+    (("width",), 0, "width: expected a positive integer, got 0"),
     (("height",), KeyError, "height: missing"),
 ]
 

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from snail_common.loc.problem import DIST_LENGTHS
+from snail_common.loc.problem import ProblemError, parse_camera_block
 
-from .fields import InputError, check_format, field, integer, load, number, numbers, obj, positive
+from .fields import InputError, check_format, load, obj
 
 FORMAT = "snail-camera/1"
 
@@ -43,20 +43,12 @@ def parse_camera(value: Any) -> Camera:
     """Validate a decoded ``snail-camera/1`` object (InputError names the field)."""
     cam = obj(value, "camera")
     check_format(cam, FORMAT)
-    fx, fy = (positive(field(cam, k), k) for k in ("fx", "fy"))
-    cx, cy = (number(field(cam, k), k) for k in ("cx", "cy"))
-    dist = np.zeros(5)
-    if cam.get("dist") is not None:
-        raw = cam["dist"]
-        if not isinstance(raw, list) or len(raw) not in DIST_LENGTHS:
-            raise InputError(f"dist: expected {', '.join(map(str, DIST_LENGTHS))} numbers "
-                             "(OpenCV's k1, k2, p1, p2[, k3, ...])")
-        dist = numbers(raw, len(raw), "dist")
-    size = None
-    if "width" in cam or "height" in cam:
-        width, height = (integer(field(cam, k), k, low=1) for k in ("width", "height"))
-        size = (width, height)
-    return Camera(intrinsics(fx, fy, cx, cy), dist, size)
+    try:
+        return Camera(*parse_camera_block(cam, where=""))
+    except InputError:
+        raise
+    except ProblemError as exc:
+        raise InputError(str(exc)) from None
 
 
 def load_camera(path: str | Path) -> Camera:

@@ -89,27 +89,31 @@ def _pose(value: Any, where: str) -> PoseVectors:
                        tvec=_numbers(_field(obj, "tvec", f"{where}."), 3, f"{where}.tvec"))
 
 
-def _camera(value: Any) -> tuple[np.ndarray, np.ndarray, tuple[int, int] | None]:
-    cam = _object(value, "camera")
-    f = {k: _number(_field(cam, k, "camera."), f"camera.{k}") for k in ("fx", "fy", "cx", "cy")}
+def parse_camera_block(value: Any, where: str = "camera"
+                       ) -> tuple[np.ndarray, np.ndarray, tuple[int, int] | None]:
+    """(K, dist, (width, height) or None) of a camera object: a problem's ``camera`` block
+    or a ``snail-camera/1`` file (``where`` prefixes the field names in errors)."""
+    at = f"{where}." if where else ""
+    cam = _object(value, where or "camera")
+    f = {k: _number(_field(cam, k, at), f"{at}{k}") for k in ("fx", "fy", "cx", "cy")}
     for k in ("fx", "fy"):
         if f[k] <= 0:
-            raise ProblemError(f"camera.{k}: must be positive, got {f[k]}")
+            raise ProblemError(f"{at}{k}: must be positive, got {f[k]}")
     K = np.array([[f["fx"], 0.0, f["cx"]], [0.0, f["fy"], f["cy"]], [0.0, 0.0, 1.0]])
     dist = np.zeros(5)
     if cam.get("dist") is not None:
         raw = cam["dist"]
         if not isinstance(raw, list) or len(raw) not in DIST_LENGTHS:
-            raise ProblemError(f"camera.dist: expected {', '.join(map(str, DIST_LENGTHS))} "
+            raise ProblemError(f"{at}dist: expected {', '.join(map(str, DIST_LENGTHS))} "
                                "numbers (OpenCV's k1, k2, p1, p2[, k3, ...])")
-        dist = _numbers(raw, len(raw), "camera.dist")
+        dist = _numbers(raw, len(raw), f"{at}dist")
     size = None
     if "width" in cam or "height" in cam:
         dims = []
         for k in ("width", "height"):
-            v = _field(cam, k, "camera.")
+            v = _field(cam, k, at)
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ProblemError(f"camera.{k}: expected a positive integer, got {v!r}")
+                raise ProblemError(f"{at}{k}: expected a positive integer, got {v!r}")
             dims.append(v)
         size = (dims[0], dims[1])
     return K, dist, size
@@ -122,7 +126,7 @@ def parse_problem(obj: Any, *, require_initial_pose: bool = True) -> Problem:
     fmt = obj.get("format")
     if fmt != FORMAT:
         raise ProblemError(f"format: expected {FORMAT!r}, got {fmt!r}")
-    K, dist, size = _camera(_field(obj, "camera", ""))
+    K, dist, size = parse_camera_block(_field(obj, "camera", ""))
     p2 = _rows(_field(obj, "points2d", ""), 2, "points2d")
     p3 = _rows(_field(obj, "points3d", ""), 3, "points3d")
     if len(p2) < MIN_POINTS:
