@@ -1,20 +1,44 @@
-# One image for all three roles: snail-garbler, snail-evaluator, snail-client.
-FROM python:3.11-slim
+# One image for all three roles: snail-garbler, snail-evaluator, snail-client (and
+# snail-bench). BASE is any Debian-like image with Python >= 3.10 and venv:
+#   docker build .                                      (python:3.11-slim from a registry)
+#   deploy/build-base && docker build --build-arg BASE=snail-base:bookworm .
+#                                                       (no registry: Debian packages only)
+# The project and its dependencies go into a venv (PEP 668) in a build stage; the final
+# stage copies only the venv: no compiler, no pip or apt caches, no sources.
+# Offline: deploy/wheelhouse fills deploy/wheels/ and pip then installs only from there.
+ARG BASE=python:3.11-slim
 
-# iproute2: `tc netem` for latency experiments (the compose services add NET_ADMIN)
-RUN apt-get update \
- && apt-get install -y --no-install-recommends iproute2 \
- && rm -rf /var/lib/apt/lists/*
+FROM ${BASE} AS build
+# lets deploy/compose-test remove this stage's leftover image (the classic builder keeps it)
+LABEL org.snail.stage=build
+COPY deploy/wheels/ /wheels/
+COPY pyproject.toml README.md /src/
+COPY snail_common /src/snail_common
+COPY snail_client /src/snail_client
+COPY snail_garbler /src/snail_garbler
+COPY snail_evaluator /src/snail_evaluator
+COPY snail_bench /src/snail_bench
+RUN set -e; python3 -m venv /opt/snail; \
+    if ls /wheels/*.whl >/dev/null 2>&1; then \
+        echo "installing from deploy/wheels only"; from="--no-index --find-links /wheels"; \
+    else from=""; fi; \
+    /opt/snail/bin/pip install --no-cache-dir --disable-pip-version-check $from /src; \
+    /opt/snail/bin/python -m pip uninstall --yes --quiet pip setuptools
 
-WORKDIR /app
-COPY pyproject.toml README.md ./
-COPY snail_common ./snail_common
-COPY snail_client ./snail_client
-COPY snail_garbler ./snail_garbler
-COPY snail_evaluator ./snail_evaluator
-RUN pip install --no-cache-dir .
-
-# compiled circuits (mount a volume here to keep them across restarts)
-ENV SNAIL_CACHE_DIR=/cache
-RUN mkdir -p /cache /tls
+FROM ${BASE}
+# tc (netem lab) is in iproute2: Debian's base has it, the official slim image does not
+RUN command -v tc >/dev/null || { apt-get update \
+      && apt-get install -y --no-install-recommends iproute2 \
+      && rm -rf /var/lib/apt/lists/*; }
+# an unprivileged user; the volume mount points belong to it, so fresh volumes do too
+RUN useradd --system --uid 10001 --user-group --no-create-home --home-dir /nonexistent \
+        --shell /usr/sbin/nologin snail \
+ && mkdir -p /cache /tls /ca /out/garbler /out/evaluator /out/client \
+ && chown snail:snail /cache /tls /ca /out/garbler /out/evaluator /out/client
+COPY --from=build /opt/snail /opt/snail
+ENV PATH=/opt/snail/bin:$PATH \
+    SNAIL_CACHE_DIR=/cache \
+    PYTHONUNBUFFERED=1
+USER snail
+WORKDIR /tmp
 CMD ["snail-client", "--help"]

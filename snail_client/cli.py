@@ -59,7 +59,9 @@ def certs(directory: Path, hosts: tuple[str, ...], days: int,
     click.echo(f"wrote CA and garbler, evaluator, client certificates to {directory}")
 
 
-from .localize_cmd import localize_cmd, track_cmd  # noqa: E402  (commands of the group above)
+from .health import health_cmd  # noqa: E402  (commands of the group above)
+from .localize_cmd import localize_cmd, track_cmd  # noqa: E402
 
 main.add_command(localize_cmd)
 main.add_command(track_cmd)
+main.add_command(health_cmd)
