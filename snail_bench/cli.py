@@ -224,5 +224,87 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
                        f"slowest client's median {worst:.3f} s")
 
 
+@main.command()
+@click.option("--server-delay-ms", type=click.FloatRange(0, 10_000), default=0.0,
+              show_default=True, help="One-way delay on the garbler-evaluator link.")
+@click.option("--server-rate-mbit", type=click.FloatRange(min=0.1), default=None,
+              help="Rate of the garbler-evaluator link, each way (default: unlimited).")
+@click.option("--client-delay-ms", type=click.FloatRange(0, 10_000), default=0.0,
+              show_default=True, help="One-way delay on both of the client's links.")
+@click.option("--client-rate-mbit", type=click.FloatRange(min=0.1), default=None,
+              help="Rate of each of the client's links, each way (default: unlimited).")
+@click.option("--jitter-ms", type=click.FloatRange(0, 10_000), default=0.0,
+              show_default=True, help="Uniform +- jitter on every delayed link (at most "
+                                      "its delay; packets keep their order).")
+@click.option("--loss-pct", type=click.FloatRange(0, 99), default=0.0, show_default=True,
+              help="Packet loss on the client's links (its WiFi), each way.")
+@click.option("--server-loss-pct", type=click.FloatRange(0, 99), default=0.0,
+              show_default=True, help="Packet loss on the garbler-evaluator link.")
+@click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm", show_default=True,
+              help="Levenberg-Marquardt (damped) or Gauss-Newton.")
+@click.option("--points", type=click.IntRange(4, 4096), multiple=True, metavar="N",
+              help="Circuit size; repeat for several (default: 6 and 12).")
+@click.option("--repeat", type=click.IntRange(1, 1000), default=5, show_default=True,
+              help="Warm runs per circuit and shaping, after one first run.")
+@click.option("--baseline/--no-baseline", default=True, show_default=True,
+              help="Run the same lab unshaped first and report it under 'unshaped'.")
+@click.option("--measure-seconds", type=click.FloatRange(0.1, 60), default=1.0,
+              show_default=True, help="Length of each link's throughput blast.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_ms: float,
+          client_rate_mbit: float | None, jitter_ms: float, loss_pct: float,
+          server_loss_pct: float, algorithm: str, points: tuple[int, ...], repeat: int,
+          baseline: bool, measure_seconds: float, as_json: bool) -> None:
+    """`service` over shaped links: the client, garbler and evaluator as three hosts in
+    network namespaces (needs root), each link with its own rate, delay, jitter and loss;
+    every link's RTT and rate are measured before each run. Delays are one way."""
+    from snail_common.pnp.spec import Spec
+
+    from .netem import netem_report
+    from .netlab.namespaces import LabError, LabUnavailable, Shape
+
+    def jitter(delay: float) -> float:
+        return jitter_ms if delay else 0.0
+
+    try:
+        server = Shape(server_delay_ms, jitter(server_delay_ms), server_loss_pct,
+                       server_rate_mbit)
+        client = Shape(client_delay_ms, jitter(client_delay_ms), loss_pct, client_rate_mbit)
+        specs = [Spec(algorithm, "sil", "ldlt", n) for n in points or SERVICE_POINTS]
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+    flags = click.get_current_context().find_object(dict) or {}
+
+    def done(phase: str, row: dict) -> None:
+        if flags.get("verbose"):
+            medians = ", ".join(f"{k} {v['median_s']:.3f} s" for k, v in row["service"].items())
+            click.echo(f"snail-bench: {phase}: {medians}", err=True)
+
+    shapes = {"garbler_evaluator": server, "client_garbler": client, "client_evaluator": client}
+    try:
+        report = netem_report(specs, repeat, shapes, baseline, measure_seconds,
+                              flags.get("quiet", False), done)
+    except LabUnavailable as e:
+        click.echo(f"snail-bench: {e}", err=True)
+        sys.exit(2)
+    except LabError as e:
+        click.echo(f"snail-bench: {e}", err=True)
+        sys.exit(1)
+    if as_json:
+        click.echo(json.dumps(report))
+        return
+    body = report["netem"]
+    for phase in ("unshaped", None):
+        row = body.get(phase) if phase else body
+        if row is None:
+            continue
+        click.echo(phase or "shaped")
+        for link, m in row["links"].items():
+            click.echo(f"  {link:>18}: rtt {m['rtt_ms']:.2f} ms  rate {m['rate_mbit']:.0f} Mbit/s")
+        for name, r in row["service"].items():
+            click.echo(f"  {name:>18}: median {r['median_s']:.3f} s (min {r['min_s']:.3f}, "
+                       f"max {r['max_s']:.3f})")
+
+
 if __name__ == "__main__":
     sys.exit(main())

@@ -17,6 +17,7 @@ veths and qdiscs with them; ``leftovers()`` says what would remain.
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import shutil
 import signal
@@ -34,6 +35,7 @@ LINKS: dict[str, tuple[str, str]] = {"client_garbler": ("client", "garbler"),
 CAP_NET_ADMIN, CAP_SYS_ADMIN = 12, 21
 TBF_LATENCY_MS = 100  # how long a packet may queue in the rate limiter before it drops
 READY_TIMEOUT = 10.0
+PROBE_PORT = 5201  # the probe server's port (inside the lab's fresh namespaces)
 _serial = itertools.count()
 
 
@@ -242,6 +244,24 @@ class Lab:
             raise LabError(f"{' '.join(cmd[:3])} in {role}: did not start "
                            f"({(err or [line.strip() or 'no output'])[-1]})")
         return proc
+
+    def adopt(self, proc: subprocess.Popen) -> None:
+        """Stop ``proc`` (started in a lab namespace by the caller) when the lab closes."""
+        self._procs.append(proc)
+
+    def measure(self, link: str, seconds: float = 1.0) -> dict[str, float]:
+        """Measured ``{"rtt_ms", "rate_mbit"}`` of ``link``: TCP pings and a blast of
+        ``seconds`` from its first role to its second (``probe.py``)."""
+        a, b = LINKS[link]
+        host = self.address(link, b)
+        probe = [sys.executable, "-m", "snail_bench.netlab.probe"]
+        server = self.spawn(b, [*probe, "serve", host, str(PROBE_PORT)])
+        try:
+            out = _run(*self.exec_prefix(a), *probe, "measure", host, str(PROBE_PORT),
+                       "--seconds", str(seconds))
+        finally:
+            self.stop(server)
+        return json.loads(out)
 
     def stop(self, proc: subprocess.Popen) -> None:
         _stop(proc)
