@@ -290,6 +290,9 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
     except LabError as e:
         click.echo(f"snail-bench: {e}", err=True)
         sys.exit(1)
+    except KeyboardInterrupt:  # the lab is gone by now: its `with` unwound
+        click.echo("snail-bench: interrupted", err=True)
+        sys.exit(130)
     if as_json:
         click.echo(json.dumps(report))
         return
