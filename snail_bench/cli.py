@@ -250,11 +250,18 @@ def service(algorithm: str, mode: str, solver: str, points: tuple[int, ...], rep
               help="Run the same lab unshaped first and report it under 'unshaped'.")
 @click.option("--measure-seconds", type=click.FloatRange(0.1, 60), default=1.0,
               show_default=True, help="Length of each link's throughput blast.")
+@click.option("--congestion-control", metavar="NAME", default=None,
+              help="TCP congestion control on the lab's links (e.g. cubic, reno, bbr; "
+                   "default: the kernel's).")
+@click.option("--slow-start-after-idle/--no-slow-start-after-idle", default=None,
+              help="The hosts' net.ipv4.tcp_slow_start_after_idle inside the lab "
+                   "(default: the kernel's, on).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_ms: float,
           client_rate_mbit: float | None, jitter_ms: float, loss_pct: float,
           server_loss_pct: float, algorithm: str, points: tuple[int, ...], repeat: int,
-          baseline: bool, measure_seconds: float, as_json: bool) -> None:
+          baseline: bool, measure_seconds: float, congestion_control: str | None,
+          slow_start_after_idle: bool | None, as_json: bool) -> None:
     """`service` over shaped links: the client, garbler and evaluator as three hosts in
     network namespaces (needs root), each link with its own rate, delay, jitter and loss;
     every link's RTT and rate are measured before each run. Delays are one way."""
@@ -283,6 +290,7 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
     shapes = {"garbler_evaluator": server, "client_garbler": client, "client_evaluator": client}
     try:
         report = netem_report(specs, repeat, shapes, baseline, measure_seconds,
+                              congestion_control, slow_start_after_idle,
                               flags.get("quiet", False), done)
     except LabUnavailable as e:
         click.echo(f"snail-bench: {e}", err=True)
@@ -297,6 +305,8 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
         click.echo(json.dumps(report))
         return
     body = report["netem"]
+    click.echo(f"tcp: {body['tcp']['congestion_control']}, slow start after idle "
+               f"{'on' if body['tcp']['slow_start_after_idle'] else 'off'}")
     for phase in ("unshaped", None):
         row = body.get(phase) if phase else body
         if row is None:
@@ -306,7 +316,8 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
             click.echo(f"  {link:>18}: rtt {m['rtt_ms']:.2f} ms  rate {m['rate_mbit']:.0f} Mbit/s")
         for name, r in row["service"].items():
             click.echo(f"  {name:>18}: median {r['median_s']:.3f} s (min {r['min_s']:.3f}, "
-                       f"max {r['max_s']:.3f})")
+                       f"max {r['max_s']:.3f}), beyond evaluation "
+                       f"{r['median_beyond_evaluate_s'] * 1000:.0f} ms")
 
 
 if __name__ == "__main__":

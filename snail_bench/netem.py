@@ -25,31 +25,37 @@ from .netlab.services import LabServices, lab_services
 
 
 def netem_report(specs: list[Spec], repeat: int, shapes: Mapping[str, Shape],
-                 baseline: bool = True, measure_seconds: float = 1.0, quiet: bool = True,
+                 baseline: bool = True, measure_seconds: float = 1.0,
+                 congestion: str | None = None, slow_start_after_idle: bool | None = None,
+                 quiet: bool = True,
                  on_done: Callable[[str, dict], object] | None = None) -> dict:
-    """``{"netem": {"shaping", "links", "service"[, "unshaped": {"links", "service"}]}}``:
-    configured shaping per link, measured RTT and rate per link, and the service report
-    (FORMATS.md) run from the client's namespace."""
+    """``{"netem": {"shaping", "tcp", "links", "service"[, "unshaped": {"links",
+    "service"}]}}``: configured shaping per link, the TCP settings in force (``congestion``
+    and ``slow_start_after_idle`` set them inside the lab; None: the kernel's), measured
+    RTT and rate per link, and the service report (FORMATS.md) run from the client's
+    namespace."""
     shaped = {link: shapes.get(link, Shape()) for link in LINKS}
     phases = ([("unshaped", {link: Shape() for link in LINKS})] if baseline else []) + \
         [("shaped", shaped)]
     results: dict[str, dict] = {}
-    with tempfile.TemporaryDirectory(prefix="snail-netem-") as tmp, Lab() as lab, \
-            lab_services(lab, Path(tmp)) as services, \
-            bar(len(phases) * (len(LINKS) + 1), "netem", quiet, "step") as progress:
-        for name, phase in phases:
-            lab.shape(phase)
-            links = {}
-            for link in LINKS:
-                links[link] = lab.measure(link, measure_seconds)
+    with tempfile.TemporaryDirectory(prefix="snail-netem-") as tmp, Lab() as lab:
+        lab.tune_tcp(congestion, slow_start_after_idle)  # before any daemon connects
+        tcp = lab.tcp_settings()
+        with lab_services(lab, Path(tmp)) as services, \
+                bar(len(phases) * (len(LINKS) + 1), "netem", quiet, "step") as progress:
+            for name, phase in phases:
+                lab.shape(phase)
+                links = {}
+                for link in LINKS:
+                    links[link] = lab.measure(link, measure_seconds)
+                    progress.update(1)
+                service = run_service(lab, services, specs, repeat)
                 progress.update(1)
-            service = run_service(lab, services, specs, repeat)
-            progress.update(1)
-            results[name] = {"links": links, **service}
-            if on_done is not None:
-                on_done(name, results[name])
+                results[name] = {"links": links, **service}
+                if on_done is not None:
+                    on_done(name, results[name])
     report = {"shaping": {link: asdict(shape) for link, shape in shaped.items()},
-              **results["shaped"]}
+              "tcp": tcp, **results["shaped"]}
     if baseline:
         report["unshaped"] = results["unshaped"]
     return {"netem": report}
