@@ -37,6 +37,23 @@ def netem_report(specs: list[Spec], repeat: int, shapes: Mapping[str, Shape],
     shaped = {link: shapes.get(link, Shape()) for link in LINKS}
     phases = ([("unshaped", {link: Shape() for link in LINKS})] if baseline else []) + \
         [("shaped", shaped)]
+    tcp, results = run_phases(specs, repeat, phases, measure_seconds, congestion,
+                              slow_start_after_idle, quiet, on_done)
+    report = {"shaping": {link: asdict(shape) for link, shape in shaped.items()},
+              "tcp": tcp, **results["shaped"]}
+    if baseline:
+        report["unshaped"] = results["unshaped"]
+    return {"netem": report}
+
+
+def run_phases(specs: list[Spec], repeat: int, phases: list[tuple[str, Mapping[str, Shape]]],
+               measure_seconds: float = 1.0, congestion: str | None = None,
+               slow_start_after_idle: bool | None = None, quiet: bool = True,
+               on_done: Callable[[str, dict], object] | None = None,
+               ) -> tuple[dict, dict[str, dict]]:
+    """One lab, one pair of daemons, and per phase (a name and the shaping of the links
+    it names; others unshaped): measured links, then the service report. Returns the TCP
+    settings in force and ``{phase: {"links", "service"}}``."""
     results: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="snail-netem-") as tmp, Lab() as lab:
         lab.tune_tcp(congestion, slow_start_after_idle)  # before any daemon connects
@@ -44,7 +61,7 @@ def netem_report(specs: list[Spec], repeat: int, shapes: Mapping[str, Shape],
         with lab_services(lab, Path(tmp)) as services, \
                 bar(len(phases) * (len(LINKS) + 1), "netem", quiet, "step") as progress:
             for name, phase in phases:
-                lab.shape(phase)
+                lab.shape({link: phase.get(link, Shape()) for link in LINKS})
                 links = {}
                 for link in LINKS:
                     links[link] = lab.measure(link, measure_seconds)
@@ -54,24 +71,24 @@ def netem_report(specs: list[Spec], repeat: int, shapes: Mapping[str, Shape],
                 results[name] = {"links": links, **service}
                 if on_done is not None:
                     on_done(name, results[name])
-    report = {"shaping": {link: asdict(shape) for link, shape in shaped.items()},
-              "tcp": tcp, **results["shaped"]}
-    if baseline:
-        report["unshaped"] = results["unshaped"]
-    return {"netem": report}
+    return tcp, results
 
 
 def run_service(lab: Lab, services: LabServices, specs: list[Spec], repeat: int) -> dict:
     """``snail-bench service`` in the client's namespace against the lab's daemons: its
     ``{"service": ...}`` report."""
-    points = [arg for spec in specs for arg in ("--points", str(spec.points))]
-    first = specs[0]
-    cmd = [*lab.exec_prefix("client"), sys.executable, "-m", "snail_bench.cli", "-q",
-           "service", "--algorithm", first.algorithm, "--mode", first.mode,
-           "--solver", first.solver, *points, "--repeat", str(repeat),
-           *services.client_args(), "--json"]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
-        raise LabError(f"snail-bench service in the client's namespace failed: {tail[0]}")
-    return json.loads(proc.stdout)
+    report: dict[str, dict] = {}
+    families: dict[tuple[str, str, str], list[int]] = {}
+    for spec in specs:
+        families.setdefault((spec.algorithm, spec.mode, spec.solver), []).append(spec.points)
+    for (algorithm, mode, solver), points in families.items():
+        cmd = [*lab.exec_prefix("client"), sys.executable, "-m", "snail_bench.cli", "-q",
+               "service", "--algorithm", algorithm, "--mode", mode, "--solver", solver,
+               *(arg for n in points for arg in ("--points", str(n))), "--repeat",
+               str(repeat), *services.client_args(), "--json"]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
+            raise LabError(f"snail-bench service in the client's namespace failed: {tail[0]}")
+        report.update(json.loads(proc.stdout)["service"])
+    return {"service": report}
