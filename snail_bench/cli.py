@@ -320,5 +320,41 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
                        f"{r['median_beyond_evaluate_s'] * 1000:.0f} ms")
 
 
+@main.command()
+@click.option("--out", required=True, type=click.Path(file_okay=False),
+              help="Directory for results.json, one PNG per figure and report.md.")
+@click.option("--quick", is_flag=True,
+              help="A subset (LM; n = 6, 12 / 6, 56; DO at n = 6) for under 10 minutes.")
+@click.option("--paper-results", type=click.Path(dir_okay=False), default=None,
+              help="The paper's numbers (default: ../shared/paper_results.json).")
+def paper(out: str, quick: bool, paper_results: str | None) -> None:
+    """The paper's evaluation on this machine: SIL vs DO, seconds and bytes per iteration
+    vs n at 0 and 5 ms between the servers (network lab, needs root), float32 operations
+    per iteration, float vs integer ops, and a latency sweep; each figure with the paper's
+    series beside ours. Needs the `bench` extra (matplotlib)."""
+    from pathlib import Path
+
+    from .paper import FULL, PAPER_RESULTS, QUICK, load_paper, write_paper
+
+    plan = QUICK if quick else FULL
+    flags = click.get_current_context().find_object(dict) or {}
+    try:
+        numbers = load_paper(Path(paper_results) if paper_results else PAPER_RESULTS)
+    except ValueError as e:
+        raise click.UsageError(f"--paper-results: {e}") from None
+    click.echo(f"snail-bench: the {'quick' if quick else 'full'} plan takes about "
+               f"{plan.expected_minutes():g} minutes on 2 cores (a cold circuit cache).",
+               err=True)
+    try:
+        report = write_paper(Path(out), plan, numbers, flags.get("quiet", False))
+    except ImportError as e:
+        click.echo(f"snail-bench: {e}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        click.echo("snail-bench: interrupted", err=True)
+        sys.exit(130)
+    click.echo(str(report))
+
+
 if __name__ == "__main__":
     sys.exit(main())
