@@ -324,7 +324,8 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
 @click.option("--out", required=True, type=click.Path(file_okay=False),
               help="Directory for results.json, one PNG per figure and report.md.")
 @click.option("--quick", is_flag=True,
-              help="A subset (LM; n = 6, 12 / 6, 56; DO at n = 6) for under 10 minutes.")
+              help="A subset for under 10 minutes: LM only, n = 6, 12 for totals and 6, 56 "
+                   "per iteration, no DO.")
 @click.option("--paper-results", type=click.Path(dir_okay=False), default=None,
               help="The paper's numbers (default: ../shared/paper_results.json).")
 def paper(out: str, quick: bool, paper_results: str | None) -> None:
@@ -343,13 +344,20 @@ def paper(out: str, quick: bool, paper_results: str | None) -> None:
     except ValueError as e:
         raise click.UsageError(f"--paper-results: {e}") from None
     click.echo(f"snail-bench: the {'quick' if quick else 'full'} plan takes about "
-               f"{plan.expected_minutes():g} minutes on 2 cores (a cold circuit cache).",
-               err=True)
+               f"{plan.expected_minutes():g} minutes on 2 idle cores with a cold circuit "
+               f"cache (twice that with other work on them).", err=True)
+    from snail_client.secure import ServiceError
+
+    from .netlab.namespaces import LabError
+
     try:
         report = write_paper(Path(out), plan, numbers, flags.get("quiet", False))
     except ImportError as e:
         click.echo(f"snail-bench: {e}", err=True)
         sys.exit(2)
+    except (ServiceError, LabError, RuntimeError) as e:
+        click.echo(f"snail-bench: {e}", err=True)
+        sys.exit(1)
     except KeyboardInterrupt:
         click.echo("snail-bench: interrupted", err=True)
         sys.exit(130)

@@ -7,7 +7,8 @@ the figures and writes the report. What is measured and how:
 - ``totals``: SIL vs DO, one whole localization, n = 6..12, on loopback (the paper ran
   both parties on one host). A SIL localization makes at least 20 invocations (the
   privacy floor), so its total is the first invocation plus 19 warm ones (median); a DO
-  localization is one invocation of the 20-iteration circuit. Our DO is LM only.
+  localization is one invocation of the 20-iteration circuit. Our DO is LM only, and
+  the quick plan leaves it out (each n compiles for ~2 minutes and runs for ~20 s).
 - ``sweep``: seconds per iteration and bytes garbler -> evaluator per iteration vs n, in
   the network lab at 0 and 5 ms one way between the servers, 2.5 Gbit/s (the paper's
   setting). Without root the lab cannot be built: the sweep then runs on loopback at 0 ms
@@ -18,13 +19,16 @@ the figures and writes the report. What is measured and how:
 - ``ops``: float32 operations per iteration vs n, counted on the circuit's float32
   mirror (every add, sub, mul, div, ... on every element), next to the paper's formulas.
 - ``micro``: seconds for 10,000 garbled operations (add, mul) on float32, int32 and
-  int64, garbled and evaluated in one process (the paper's float vs integer table).
+  int64, garbled and evaluated in one process (the paper's float vs integer table),
+  extrapolated from two batch sizes.
 """
 
 from __future__ import annotations
 
 import json
 import secrets
+import subprocess
+import sys
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -74,7 +78,7 @@ class Plan:
         return round((sil_s + run_s + do_s + latency_s) / 60 + 1, 1)
 
 
-QUICK = Plan(totals_points=(6, 12), do_points=(6,), sweep_points=(6, 56), algorithms=("lm",),
+QUICK = Plan(totals_points=(6, 12), do_points=(), sweep_points=(6, 56), algorithms=("lm",),
              repeat=3, micro_lanes=500)
 FULL = Plan(totals_points=tuple(range(6, 13)), do_points=tuple(range(6, 13)),
             sweep_points=(6, 56, 106, 156, 206, 256), algorithms=("lm", "gn"), repeat=5,
@@ -105,7 +109,8 @@ def measure_all(plan: Plan, tick: Callable[[str], object] = lambda _: None) -> d
                                  for spec in sil}}
     tick("sil totals")
     do = [Spec("lm", "do", "ldlt", n) for n in plan.do_points]
-    rows = service_report(do, 1)["service"]
+    precompile(do)  # a DO circuit compiles for minutes: not inside a run's timeout
+    rows = service_report(do, 1)["service"] if do else {}
     results["totals"]["do"] = {spec.circuit_id: {"algorithm": "lm", "n": spec.points,
                                                  "total_s": rows[spec.circuit_id]["median_s"],
                                                  "and": rows[spec.circuit_id]["and"]}
@@ -117,6 +122,19 @@ def measure_all(plan: Plan, tick: Callable[[str], object] = lambda _: None) -> d
     tick("latency")
     results["finished"] = time.strftime("%Y-%m-%d %H:%M:%S")
     return results
+
+
+def precompile(specs: list[Spec]) -> None:
+    """Compile ``specs`` into the circuit cache, each in a process of its own (a DO
+    circuit peaks at gigabytes; this process should not keep them)."""
+    for spec in specs:
+        code = ("import sys; from snail_common import families; families.register_all(); "
+                "from snail_common.circuit import registry; registry.compiled(sys.argv[1])")
+        proc = subprocess.run([sys.executable, "-c", code, spec.registry_id],
+                              capture_output=True, text=True)
+        if proc.returncode != 0:
+            tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
+            raise RuntimeError(f"compiling {spec.circuit_id} failed: {tail[0]}")
 
 
 def _sil_total(row: dict, spec: Spec) -> dict:
@@ -164,7 +182,10 @@ def latency_sweep(repeat: int) -> dict:
     phases += [(f"client_{d:g}ms", {link: Shape(d) for link in client})
                for d in LATENCY_DELAYS_MS[1:]]
     try:
-        tcp, rows = run_phases([Spec("lm", "sil", "ldlt", 6)], max(repeat, 5), phases)
+        # cubic without slow start after idle: TCP sends a burst in one round trip, so
+        # the slope counts the protocol's round trips (README: what bbr adds)
+        tcp, rows = run_phases([Spec("lm", "sil", "ldlt", 6)], max(repeat, 5), phases,
+                               congestion="cubic", slow_start_after_idle=False)
     except LabUnavailable as exc:
         return {"lab": f"unavailable: {exc}"}
     out: dict = {"tcp": tcp, "delays_ms": list(LATENCY_DELAYS_MS)}
@@ -233,27 +254,38 @@ def _int_op(op: str, bits: int) -> Callable:
     return lambda b, x, y: multiply.mul(b, x, y)[..., :bits]  # the low word, as C does
 
 
+def _garble_seconds(op: Callable, bits: int, lanes: int) -> tuple[float, int]:
+    """Seconds to garble and evaluate ``lanes`` independent ``op``s, and AND per op."""
+    b = CircuitBuilder()
+    x, y = (b.input(name, (lanes,), bits=bits) for name in "xy")
+    b.output("z", op(b, x, y))
+    circuit = b.build()
+    schedule = schedule_circuit(circuit)
+    bits_in = np.frombuffer(secrets.token_bytes(schedule.n_inputs), np.uint8) & 1
+    t0 = time.perf_counter()
+    garbled_run(schedule, bits_in.astype(bool))
+    return time.perf_counter() - t0, circuit.counts()["and"] // lanes
+
+
 def micro_benchmark(lanes: int) -> dict:
     """Seconds for 10,000 garbled add and mul on float32, int32 and int64 (garbling and
-    evaluation in this process, ``lanes`` operations per circuit, scaled), AND per op."""
+    evaluation in this process) and AND per op. 10,000 int64 products would be 45 M AND
+    gates at once, so each op runs at ``lanes`` and 2 x ``lanes`` and the time is
+    extrapolated along that line: a fixed per-step part (the circuit's depth) plus a part
+    per operation."""
     out: dict = {}
     for kind, bits in (("float32", 32), ("int32", 32), ("int64", 64)):
         for op in ("add", "mul"):
-            b = CircuitBuilder()
-            x, y = (b.input(name, (lanes,), bits=bits) for name in "xy")
             fn = OPS[op][0] if kind == "float32" else _int_op(op, bits)
-            b.output("z", fn(b, x, y))
-            circuit = b.build()
-            schedule = schedule_circuit(circuit)
-            bits_in = np.frombuffer(secrets.token_bytes(schedule.n_inputs), np.uint8) & 1
-            t0 = time.perf_counter()
-            garbled_run(schedule, bits_in.astype(bool))
-            seconds = time.perf_counter() - t0
+            t1, and_per_op = _garble_seconds(fn, bits, lanes)
+            t2, _ = _garble_seconds(fn, bits, 2 * lanes)
+            per_op = max(t2 - t1, 0.0) / lanes
+            fixed = max(t1 - per_op * lanes, 0.0)
             out.setdefault(kind, {})[op] = {
-                "and_per_op": circuit.counts()["and"] // lanes,
-                "seconds_10000": round(seconds * MICRO_OPS / lanes, 4)}
+                "and_per_op": and_per_op,
+                "seconds_10000": round(fixed + per_op * MICRO_OPS, 4),
+                "measured_s": {lanes: round(t1, 4), 2 * lanes: round(t2, 4)}}
     return out
-
 
 def write_paper(out: Path, plan: Plan, paper: dict, quiet: bool = True) -> Path:
     """Measure ``plan``, then write ``out``/results.json, the PNGs and report.md (the
