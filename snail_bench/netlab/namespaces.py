@@ -274,8 +274,9 @@ class Lab:
             self._procs.append(proc)
         line = _readline(proc, READY_TIMEOUT)
         if line.strip() != "ready":
+            proc.kill()
+            err = proc.communicate()[1].strip().splitlines()
             _stop(proc)
-            err = proc.stderr.read().strip().splitlines() if proc.stderr else []
             raise LabError(f"{' '.join(cmd[:3])} in {role}: did not start "
                            f"({(err or [line.strip() or 'no output'])[-1]})")
         return proc
