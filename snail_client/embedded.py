@@ -70,9 +70,11 @@ class Services:
 
 def start_daemon(role: str, args: list[str], log: Path, host: str = "127.0.0.1",
                  env: Mapping[str, str] | None = None,
-                 timeout: float = STARTUP_TIMEOUT) -> Daemon:
-    """Start ``python -m snail_<role> --listen HOST:0 ARGS`` and wait until it listens."""
-    cmd = [sys.executable, "-m", f"snail_{role}", "--listen", format_addr(host, 0), *args]
+                 timeout: float = STARTUP_TIMEOUT, wrap: tuple[str, ...] = ()) -> Daemon:
+    """Start ``python -m snail_<role> --listen HOST:0 ARGS`` and wait until it listens;
+    ``wrap`` goes before the command (the network lab's ``ip netns exec NS``)."""
+    cmd = [*wrap, sys.executable, "-m", f"snail_{role}", "--listen", format_addr(host, 0),
+           *args]
     with open(log, "wb") as err:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=err, env={**os.environ, **(env or {})})

@@ -1,0 +1,336 @@
+"""Three hosts on one machine: the client, the garbler and the evaluator in network
+namespaces of their own, each pair joined by a link shaped on its own.
+
+A link ``X_Y`` is two veth pairs through a fourth, middle namespace (the wire):
+``X:to-Y <-> wire:xy-x | forwarder | wire:xy-y <-> Y:to-X``. X and Y hold addresses in
+10.99.L.0/24 (L the link's index); these exist only inside the lab's namespaces, and no
+namespace has a route out. Rate is tbf on both endpoints (each direction its own bucket);
+delay, jitter and loss are applied by the wire process (``wire.py``: this kernel has no
+netem). Namespace names carry the pid, so concurrent labs never meet and a lab left by a
+killed process can be told by its owner.
+
+``Lab`` is a context manager: leaving it by any path (an exception, Ctrl-C, SIGTERM)
+stops the processes it started and deletes every namespace it made, which takes their
+veths and qdiscs with them; ``leftovers()`` says what would remain.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+
+ROLES = ("client", "garbler", "evaluator")
+LINKS: dict[str, tuple[str, str]] = {"client_garbler": ("client", "garbler"),
+                                     "client_evaluator": ("client", "evaluator"),
+                                     "garbler_evaluator": ("garbler", "evaluator")}
+CAP_NET_ADMIN, CAP_SYS_ADMIN = 12, 21
+TBF_LATENCY_MS = 100  # how long a packet may queue in the rate limiter before it drops
+READY_TIMEOUT = 10.0
+PROBE_PORT = 5201  # the probe server's port (inside the lab's fresh namespaces)
+_serial = itertools.count()
+
+
+class LabUnavailable(Exception):
+    """This process cannot build namespaces (not root, no CAP_NET_ADMIN, no ``ip``)."""
+
+
+class LabError(Exception):
+    """A command that builds or shapes the lab failed."""
+
+
+@dataclass(frozen=True)
+class Shape:
+    """One link's shaping, the same in both directions (so RTT = 2 x delay)."""
+
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0
+    loss_pct: float = 0.0
+    rate_mbit: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("delay_ms", "jitter_ms", "loss_pct"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.loss_pct >= 100:
+            raise ValueError(f"loss_pct must be below 100, got {self.loss_pct}")
+        if self.jitter_ms > self.delay_ms:
+            raise ValueError(f"jitter_ms ({self.jitter_ms}) must not exceed delay_ms "
+                             f"({self.delay_ms})")
+        if self.rate_mbit is not None and self.rate_mbit <= 0:
+            raise ValueError(f"rate_mbit must be > 0, got {self.rate_mbit}")
+
+
+def check_capable() -> None:
+    """Raise LabUnavailable (one line) unless namespaces can be made here."""
+    if shutil.which("ip") is None or shutil.which("tc") is None:
+        raise LabUnavailable("the network lab needs the 'ip' and 'tc' commands (iproute2)")
+    caps = 0
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("CapEff:"):
+            caps = int(line.split()[1], 16)
+    missing = [name for bit, name in ((CAP_NET_ADMIN, "CAP_NET_ADMIN"),
+                                      (CAP_SYS_ADMIN, "CAP_SYS_ADMIN")) if not caps >> bit & 1]
+    if missing:
+        raise LabUnavailable(f"the network lab needs root ({' and '.join(missing)} missing): "
+                             f"run it as root or in a privileged container")
+
+
+def _run(*cmd: str) -> str:
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise LabError(f"{' '.join(cmd)}: {proc.stderr.strip() or proc.returncode}")
+    return proc.stdout
+
+
+def netns_list() -> list[str]:
+    """Names of all network namespaces ``ip netns`` knows."""
+    return [line.split()[0] for line in _run("ip", "netns", "list").splitlines() if line]
+
+
+class Lab:
+    """The namespaces, links, wire process and daemons of one lab (see the module doc)."""
+
+    def __init__(self) -> None:
+        self.tag = f"snail-{os.getpid()}-{next(_serial)}"
+        self.ns = {role: f"{self.tag}-{role}" for role in (*ROLES, "wire")}
+        self.shapes: dict[str, Shape] = {link: Shape() for link in LINKS}
+        self._made: list[str] = []
+        self._procs: list[subprocess.Popen] = []
+        self._wire: subprocess.Popen | None = None
+        self._old_sigterm: object = None
+
+    # names and addresses -------------------------------------------------------------
+    @staticmethod
+    def ifname(role: str, peer: str) -> str:
+        """The endpoint veth in ``role``'s namespace that leads to ``peer``."""
+        return f"to-{peer}"
+
+    @staticmethod
+    def wire_ifname(link: str, role: str) -> str:
+        a, b = LINKS[link]
+        return f"{a[0]}{b[0]}-{role[0]}"
+
+    @staticmethod
+    def address(link: str, role: str) -> str:
+        """``role``'s IPv4 address on ``link`` (private, inside the lab only)."""
+        index = list(LINKS).index(link)
+        return f"10.99.{index}.{LINKS[link].index(role) + 1}"
+
+    def addresses(self) -> list[str]:
+        return [self.address(link, role) for link, pair in LINKS.items() for role in pair]
+
+    def exec_prefix(self, role: str) -> tuple[str, ...]:
+        """Prefix that runs a command inside ``role``'s namespace."""
+        return ("ip", "netns", "exec", self.ns[role])
+
+    # life cycle ------------------------------------------------------------------------
+    def __enter__(self) -> Lab:
+        check_capable()
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            self._old_sigterm = signal.signal(signal.SIGTERM, _sigterm_to_exit)
+        try:
+            self._build()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _build(self) -> None:
+        for name in self.ns.values():
+            _run("ip", "netns", "add", name)
+            self._made.append(name)
+        for role in (*ROLES, "wire"):
+            _run("ip", "-n", self.ns[role], "link", "set", "lo", "up")
+        wire = self.ns["wire"]
+        for link, pair in LINKS.items():
+            for role, peer in (pair, pair[::-1]):
+                inner, outer = self.ifname(role, peer), self.wire_ifname(link, role)
+                _run("ip", "link", "add", inner, "netns", self.ns[role], "type", "veth",
+                     "peer", "name", outer, "netns", wire)
+                _run("ip", "-n", self.ns[role], "addr", "add",
+                     f"{self.address(link, role)}/24", "dev", inner)
+                _run("ip", "-n", self.ns[role], "link", "set", inner, "up")
+                _run("ip", "-n", wire, "link", "set", outer, "up")
+        self._start_wire()
+
+    def close(self) -> None:
+        """Stop every process the lab started and delete its namespaces (idempotent)."""
+        for proc in reversed(self._procs):
+            _stop(proc)
+        self._procs.clear()
+        if self._wire is not None:
+            _stop(self._wire)
+            self._wire = None
+        failures = []
+        for name in reversed(self._made):
+            proc = subprocess.run(("ip", "netns", "del", name), capture_output=True,
+                                  text=True)
+            if proc.returncode != 0 and name in netns_list():
+                failures.append(f"{name}: {proc.stderr.strip()}")
+        self._made.clear()
+        if self._old_sigterm is not None:
+            signal.signal(signal.SIGTERM, self._old_sigterm)  # type: ignore[arg-type]
+            self._old_sigterm = None
+        if failures:
+            raise LabError("could not delete " + "; ".join(failures))
+
+    def leftovers(self) -> list[str]:
+        """Namespaces of this lab that still exist (empty after ``close``)."""
+        return [name for name in netns_list() if name.startswith(self.tag + "-")]
+
+    # shaping ---------------------------------------------------------------------------
+    def shape(self, shapes: Mapping[str, Shape]) -> None:
+        """Set the shaping of the named links (others keep theirs): tbf on both ends of
+        a link with a rate, none without; the wire restarted with the new delays."""
+        for link, shape in shapes.items():
+            if link not in LINKS:
+                raise ValueError(f"unknown link {link!r}; links: {', '.join(LINKS)}")
+            self.shapes[link] = shape
+            for role, peer in (LINKS[link], LINKS[link][::-1]):
+                self._rate(role, self.ifname(role, peer), shape.rate_mbit)
+        self._start_wire()
+
+    def _rate(self, role: str, dev: str, rate_mbit: float | None) -> None:
+        ns = self.ns[role]
+        if rate_mbit is None:
+            subprocess.run(("tc", "-n", ns, "qdisc", "del", "dev", dev, "root"),
+                           capture_output=True)  # none set is fine
+            return
+        rate_bytes = rate_mbit * 1e6 / 8
+        burst = max(int(rate_bytes / 250), 2 * 65536 + 1514)  # 4 ms, and two GSO frames
+        _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "tbf",
+             "rate", f"{rate_mbit}mbit", "burst", str(burst), "latency", f"{TBF_LATENCY_MS}ms")
+
+    def tune_tcp(self, congestion: str | None = None,
+                 slow_start_after_idle: bool | None = None) -> None:
+        """TCP as the hosts would be tuned, inside the lab only: ``congestion`` control on
+        every lab route (``ip route ... congctl``), ``net.ipv4.tcp_slow_start_after_idle``
+        in every role's namespace; None keeps the kernel's default."""
+        for role in ROLES:
+            ns = self.ns[role]
+            if slow_start_after_idle is not None:
+                _run("ip", "netns", "exec", ns, "sysctl", "-q", "-w",
+                     f"net.ipv4.tcp_slow_start_after_idle={int(slow_start_after_idle)}")
+            if congestion is None:
+                continue
+            for link, pair in LINKS.items():
+                if role not in pair:
+                    continue
+                peer = pair[1 - pair.index(role)]
+                prefix = self.address(link, role).rsplit(".", 1)[0] + ".0/24"
+                _run("ip", "-n", ns, "route", "replace", prefix, "dev",
+                     self.ifname(role, peer), "proto", "kernel", "scope", "link",
+                     "src", self.address(link, role), "congctl", congestion)
+
+    def tcp_settings(self) -> dict[str, object]:
+        """The client's congestion control and slow-start-after-idle, as TCP will use
+        them on the lab's links (measured, not what was asked for)."""
+        ns = self.ns["client"]
+        route = _run("ip", "-n", ns, "route", "show", "dev", self.ifname("client", "evaluator"))
+        congctl = re.search(r"congctl (\S+)", route)
+        default = _run("ip", "netns", "exec", ns, "sysctl", "-n",
+                       "net.ipv4.tcp_congestion_control").strip()
+        idle = _run("ip", "netns", "exec", ns, "sysctl", "-n",
+                    "net.ipv4.tcp_slow_start_after_idle").strip()
+        return {"congestion_control": congctl.group(1) if congctl else default,
+                "slow_start_after_idle": idle == "1"}
+
+    def qdiscs(self, role: str) -> str:
+        """``tc qdisc show`` inside ``role``'s namespace."""
+        return _run("tc", "-n", self.ns[role], "qdisc", "show")
+
+    def _start_wire(self) -> None:
+        if self._wire is not None:
+            _stop(self._wire)
+            self._wire = None
+        args = []
+        for link, shape in self.shapes.items():
+            a, b = LINKS[link]
+            args += ["--link", f"{self.wire_ifname(link, a)},{self.wire_ifname(link, b)},"
+                               f"{shape.delay_ms},{shape.jitter_ms},{shape.loss_pct}"]
+        self._wire = self.spawn("wire", [sys.executable, "-m", "snail_bench.netlab.wire",
+                                         *args], track=False)
+
+    # processes -------------------------------------------------------------------------
+    def spawn(self, role: str, cmd: list[str], track: bool = True) -> subprocess.Popen:
+        """Start ``cmd`` in ``role``'s namespace and wait for its ``ready`` line; it is
+        stopped when the lab closes (or by ``stop``)."""
+        proc = subprocess.Popen([*self.exec_prefix(role), *cmd], stdin=subprocess.DEVNULL,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        if track:
+            self._procs.append(proc)
+        line = _readline(proc, READY_TIMEOUT)
+        if line.strip() != "ready":
+            proc.kill()
+            err = proc.communicate()[1].strip().splitlines()
+            _stop(proc)
+            raise LabError(f"{' '.join(cmd[:3])} in {role}: did not start "
+                           f"({(err or [line.strip() or 'no output'])[-1]})")
+        return proc
+
+    def adopt(self, proc: subprocess.Popen) -> None:
+        """Stop ``proc`` (started in a lab namespace by the caller) when the lab closes."""
+        self._procs.append(proc)
+
+    def measure(self, link: str, seconds: float = 1.0) -> dict[str, float]:
+        """Measured ``{"rtt_ms", "rate_mbit"}`` of ``link``: TCP pings and a blast of
+        ``seconds`` from its first role to its second (``probe.py``)."""
+        a, b = LINKS[link]
+        host = self.address(link, b)
+        probe = [sys.executable, "-m", "snail_bench.netlab.probe"]
+        server = self.spawn(b, [*probe, "serve", host, str(PROBE_PORT)])
+        try:
+            out = _run(*self.exec_prefix(a), *probe, "measure", host, str(PROBE_PORT),
+                       "--seconds", str(seconds))
+        finally:
+            self.stop(server)
+        return json.loads(out)
+
+    def stop(self, proc: subprocess.Popen) -> None:
+        _stop(proc)
+        if proc in self._procs:
+            self._procs.remove(proc)
+
+
+def _readline(proc: subprocess.Popen, timeout: float) -> str:
+    """The first stdout line of ``proc``, or '' if none came within ``timeout``."""
+    import selectors
+
+    assert proc.stdout is not None
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        if not sel.select(timeout):
+            return ""
+    return proc.stdout.readline()
+
+
+def _stop(proc: subprocess.Popen, timeout: float = 10.0) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    for stream in (proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()
+
+
+def _sigterm_to_exit(signum: int, frame: FrameType | None) -> None:
+    """SIGTERM unwinds like Ctrl-C does, so the lab's ``finally`` deletes what it made."""
+    raise SystemExit(128 + signum)
+

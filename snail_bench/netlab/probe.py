@@ -1,0 +1,99 @@
+"""What a link really does: TCP round-trip time and throughput between two namespaces.
+
+``serve HOST PORT`` (in one namespace) answers two kinds of connection: ``p`` echoes every
+byte back (a ping), ``b`` swallows a blast and replies with the bytes it got and the
+seconds between the first and the last of them. ``measure HOST PORT`` (in the other)
+pings ``--pings`` times and blasts for ``--seconds``, then prints one JSON object:
+``{"rtt_ms": median, "rate_mbit": receiver's rate}``. TCP, because that is what the
+daemons speak: the RTT includes no handshake, the rate includes slow start (a blast is
+long enough for it to matter little on the links the lab builds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import statistics
+import sys
+import time
+
+CHUNK = 1 << 20
+
+
+def serve(host: str, port: int) -> None:
+    """Answer pings and blasts, one connection at a time, until killed."""
+    listener = socket.create_server((host, port), reuse_port=False)
+    print("ready", flush=True)
+    while True:
+        conn, _ = listener.accept()
+        with conn:
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            kind = conn.recv(1)
+            if kind == b"p":
+                while data := conn.recv(64):
+                    conn.sendall(data)
+            elif kind == b"b":
+                _swallow(conn)
+
+
+def _swallow(conn: socket.socket) -> None:
+    buf = bytearray(CHUNK)
+    total, first, last = 0, None, None
+    while got := conn.recv_into(buf):
+        last = time.perf_counter()
+        if first is None:
+            first = last
+        else:
+            total += got  # bytes after the first chunk, over the span they took
+    span = (last - first) if first is not None and last is not None else 0.0
+    conn.sendall(json.dumps({"bytes": total, "seconds": span}).encode())
+
+
+def measure(host: str, port: int, pings: int, seconds: float) -> dict:
+    """Median TCP ping RTT (ms) and receiver-side throughput (Mbit/s) to ``serve``."""
+    with socket.create_connection((host, port), timeout=30) as conn:
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.sendall(b"p")
+        rtts = []
+        for _ in range(pings):
+            t0 = time.perf_counter()
+            conn.sendall(b"x")
+            if conn.recv(1) != b"x":
+                raise ConnectionError("the probe's echo broke off")
+            rtts.append((time.perf_counter() - t0) * 1000)
+    with socket.create_connection((host, port), timeout=30) as conn:
+        conn.sendall(b"b")
+        payload = bytes(CHUNK)
+        end = time.perf_counter() + seconds
+        while time.perf_counter() < end:
+            conn.sendall(payload)
+        conn.shutdown(socket.SHUT_WR)
+        reply = b""
+        while data := conn.recv(4096):
+            reply += data
+    blast = json.loads(reply)
+    rate = blast["bytes"] * 8 / blast["seconds"] / 1e6 if blast["seconds"] > 0 else 0.0
+    return {"rtt_ms": round(statistics.median(rtts), 3), "rate_mbit": round(rate, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("serve")
+    m = sub.add_parser("measure")
+    for p in (s, m):
+        p.add_argument("host")
+        p.add_argument("port", type=int)
+    m.add_argument("--pings", type=int, default=10)
+    m.add_argument("--seconds", type=float, default=1.0)
+    args = parser.parse_args(argv)
+    if args.command == "serve":
+        serve(args.host, args.port)
+    else:
+        print(json.dumps(measure(args.host, args.port, args.pings, args.seconds)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

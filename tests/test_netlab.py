@@ -1,0 +1,139 @@
+"""The network lab: three namespaces with a 20 ms garbler-evaluator link, measured; a
+garbled localization across them equal to the cleartext circuit's; nothing left behind,
+also when a run fails or is interrupted half-way. Needs root (CI is); skipped otherwise."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from shared_paths import EXAMPLES
+
+from snail_bench.netlab.namespaces import Lab, LabUnavailable, Shape, check_capable, netns_list
+from snail_bench.netlab.services import lab_services
+
+
+def _unavailable() -> str | None:
+    try:
+        check_capable()
+        netns_list()
+    except (LabUnavailable, Exception) as exc:  # no ip, no netns support, no root
+        return f"network lab unavailable: {exc}"
+    return None
+
+
+REASON = _unavailable()
+pytestmark = pytest.mark.skipif(REASON is not None, reason=REASON or "")
+EXAMPLE = EXAMPLES / "synthetic_n6.json"
+
+
+def _root_links() -> set[str]:
+    """Links in this (the root) namespace named as the lab names its veths (other
+    software on the host adds and drops links of its own meanwhile)."""
+    out = subprocess.run(["ip", "-o", "link"], capture_output=True, text=True).stdout
+    names = {line.split(":")[1].strip().split("@")[0] for line in out.splitlines()}
+    return {n for n in names if re.fullmatch(r"to-\w+|[cge]{2}-[cge]", n)}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}").exists() and "Z" not in \
+        Path(f"/proc/{pid}/stat").read_text().split()[2]
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    with Lab() as lab:
+        lab.shape({"garbler_evaluator": Shape(delay_ms=20)})
+        with lab_services(lab, tmp_path_factory.mktemp("lab")) as services:
+            yield lab, services
+    assert lab.leftovers() == []
+    assert _root_links() == set()
+
+
+def test_the_shaped_link_is_measured(lab):
+    lab, _ = lab
+    shaped = lab.measure("garbler_evaluator", seconds=0.3)
+    plain = lab.measure("client_evaluator", seconds=0.3)
+    assert 40 <= shaped["rtt_ms"] < 60, shaped
+    assert plain["rtt_ms"] < 5, plain
+    assert shaped["rate_mbit"] > 1 and plain["rate_mbit"] > 1
+
+
+def _localize(*args: str, prefix: tuple[str, ...] = ()) -> dict:
+    proc = subprocess.run([*prefix, sys.executable, "-m", "snail_client", "localize",
+                           "--input", str(EXAMPLE), "--min-invocations", "1", "--json", *args],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
+def test_garbled_across_namespaces_equals_cleartext(lab):
+    lab, services = lab
+    garbled = _localize(*services.client_args(), prefix=lab.exec_prefix("client"))
+    clear = _localize("--backend", "cleartext")
+    assert garbled["backend"] == "garbled" and garbled["traffic"]["garbler_to_evaluator"] > 0
+    for key in ("rvec", "tvec", "iterations", "cost", "status"):
+        assert garbled[key] == clear[key], key
+    # every invocation crossed the 20 ms link at least once: the delay was in the path
+    assert garbled["timing"]["total_s"] >= 0.02 * garbled["invocations"]
+
+
+def test_teardown_after_a_failure_mid_run(tmp_path):
+    with pytest.raises(RuntimeError, match="injected"), Lab() as lab:
+        lab.shape({"client_garbler": Shape(delay_ms=5, rate_mbit=100)})
+        with lab_services(lab, tmp_path) as services:
+            pids = [services.garbler.process.pid, services.evaluator.process.pid]
+            made = set(lab.ns.values())
+            assert made <= set(netns_list())
+            assert "tbf" in lab.qdiscs("client")
+            raise RuntimeError("injected")
+    assert lab.leftovers() == [] and not made & set(netns_list())
+    assert not any(_alive(pid) for pid in pids)
+    assert _root_links() == set()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_teardown_when_interrupted_mid_run(sig):
+    proc = subprocess.Popen([sys.executable, "-m", "snail_bench.cli", "-q", "netem",
+                             "--points", "6", "--repeat", "1000", "--no-baseline",
+                             "--measure-seconds", "0.2", "--server-delay-ms", "5"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    prefix = f"snail-{proc.pid}-"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:
+        mine = [n for n in netns_list() if n.startswith(prefix)]
+        if len(mine) == 4 and _service_running(proc.pid):
+            break
+        time.sleep(0.2)
+    else:
+        proc.kill()
+        pytest.fail(f"the lab did not come up: {proc.stderr.read() if proc.stderr else ''}")
+    time.sleep(1)  # invocations under way
+    proc.send_signal(sig)
+    try:
+        proc.wait(60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+    err = proc.stderr.read() if proc.stderr else ""
+    assert proc.returncode in (130, 128 + sig), err
+    assert "Traceback" not in err, err
+    assert [n for n in netns_list() if n.startswith(prefix)] == []
+
+
+def _service_running(pid: int) -> bool:
+    """A child of ``pid`` (the bench) runs `snail-bench service` in the client's namespace."""
+    out = subprocess.run(["ps", "-o", "args=", "--ppid", str(pid)], capture_output=True,
+                         text=True).stdout
+    return "service" in out
