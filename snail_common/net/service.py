@@ -257,9 +257,12 @@ class Daemon:
             await accept(conn, self.capabilities(), self.allowed,
                          self.options.handshake_timeout, self._refusal)
         except (ProtocolError, RemoteError, ConnectionClosed, TimeoutError) as exc:
-            self.metrics.refused[getattr(exc, "code", "handshake")] += 1
-            event(self.log, "connection_rejected", logging.WARNING, peer=conn.peer_name,
-                  address=address, reason=str(exc))
+            # a container's health check presents the server's own certificate: not news
+            own = conn.peer_role == self.role
+            self.metrics.refused["self_check" if own else getattr(exc, "code",
+                                                                  "handshake")] += 1
+            event(self.log, "connection_rejected", logging.DEBUG if own else logging.WARNING,
+                  peer=conn.peer_name, address=address, reason=str(exc))
             return
         self.connections.add(conn)
         try:
