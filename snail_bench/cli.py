@@ -320,8 +320,6 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
     """`service` over shaped links: the client, garbler and evaluator as three hosts in
     network namespaces (needs root), each link with its own rate, delay, jitter and loss;
     every link's RTT and rate are measured before each run. Delays are one way."""
-    from snail_common.pnp.spec import Spec
-
     from .netem import netem_report
     from .netlab.namespaces import LabError, LabUnavailable, Shape
 
@@ -332,7 +330,7 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
         server = Shape(server_delay_ms, jitter(server_delay_ms), server_loss_pct,
                        server_rate_mbit)
         client = Shape(client_delay_ms, jitter(client_delay_ms), loss_pct, client_rate_mbit)
-        specs = [Spec(algorithm, "sil", "ldlt", n) for n in points or SERVICE_POINTS]
+        specs = [_spec(algorithm, "sil", None, "ldlt", n) for n in points or SERVICE_POINTS]
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     flags = click.get_current_context().find_object(dict) or {}

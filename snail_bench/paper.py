@@ -98,15 +98,15 @@ def measure_all(plan: Plan, tick: Callable[[str], object] = lambda _: None) -> d
     from .service import service_report
 
     results: dict = {"plan": asdict(plan), "started": time.strftime("%Y-%m-%d %H:%M:%S")}
-    results["ops"] = {alg: {n: op_counts(Spec(alg, "sil", "ldlt", n))
-                            for n in plan.sweep_points} for alg in plan.algorithms}
+    results["ops"] = {alg: {n: op_counts(sil_spec(alg, n)) for n in plan.sweep_points}
+                      for alg in plan.algorithms}
     tick("ops")
     results["micro"] = micro_benchmark(plan.micro_lanes)
     tick("micro")
-    sil = [Spec(alg, "sil", "ldlt", n) for alg in plan.algorithms for n in plan.totals_points]
-    rows = service_report(sil, MIN_INVOCATIONS - 1)["service"]
-    results["totals"] = {"sil": {spec.circuit_id: _sil_total(rows[spec.circuit_id], spec)
-                                 for spec in sil}}
+    sil = [sil_spec(alg, n) for alg in plan.algorithms for n in plan.totals_points]
+    rows = service_report(_unique(sil), MIN_INVOCATIONS - 1)["service"]
+    results["totals"] = {"sil": {f"{spec.algorithm}-{spec.circuit_id}":
+                                 _sil_total(rows[spec.circuit_id], spec) for spec in sil}}
     tick("sil totals")
     do = [Spec("lm", "do", "ldlt", n) for n in plan.do_points]
     precompile(do)  # a DO circuit compiles for minutes: not inside a run's timeout
@@ -122,6 +122,19 @@ def measure_all(plan: Plan, tick: Callable[[str], object] = lambda _: None) -> d
     tick("latency")
     results["finished"] = time.strftime("%Y-%m-%d %H:%M:%S")
     return results
+
+
+def sil_spec(algorithm: str, n: int) -> Spec:
+    """The SIL circuit ``snail-client localize`` runs for ``algorithm`` at ``n`` points by
+    default (with the client solve, LM and GN share one circuit)."""
+    from snail_common.loc.pipeline import Options
+
+    return Options(algorithm=algorithm, mode="sil").spec(n)
+
+
+def _unique(specs: list[Spec]) -> list[Spec]:
+    """``specs`` without a second spec of the same circuit."""
+    return list({spec.circuit_id: spec for spec in specs}.values())
 
 
 def precompile(specs: list[Spec]) -> None:
@@ -149,16 +162,16 @@ def sweep(plan: Plan) -> dict:
     from .netlab.namespaces import LabUnavailable, Shape
     from .service import service_report
 
-    specs = [Spec(alg, "sil", "ldlt", n) for alg in plan.algorithms for n in plan.sweep_points]
+    specs = [sil_spec(alg, n) for alg in plan.algorithms for n in plan.sweep_points]
     phases = [(f"{d:g}ms", {"garbler_evaluator": Shape(d, rate_mbit=SERVER_RATE_MBIT)})
               for d in (0.0, 5.0)]
     try:
-        tcp, phase_rows = run_phases(specs, plan.repeat, phases)
+        tcp, phase_rows = run_phases(_unique(specs), plan.repeat, phases)
         lab: str | dict = {"tcp": tcp, "links": {k: v["links"] for k, v in phase_rows.items()}}
         rows = {name: row["service"] for name, row in phase_rows.items()}
     except LabUnavailable as exc:
         lab = f"unavailable: {exc}; 0 ms measured on loopback, 5 ms not measured"
-        rows = {"0ms": service_report(specs, plan.repeat)["service"]}
+        rows = {"0ms": service_report(_unique(specs), plan.repeat)["service"]}
     out: dict = {"lab": lab, "series": {}}
     for phase, service in rows.items():
         for spec in specs:
@@ -184,15 +197,16 @@ def latency_sweep(repeat: int) -> dict:
     try:
         # cubic without slow start after idle: TCP sends a burst in one round trip, so
         # the slope counts the protocol's round trips (README: what bbr adds)
-        tcp, rows = run_phases([Spec("lm", "sil", "ldlt", 6)], max(repeat, 5), phases,
+        spec = sil_spec("lm", 6)
+        tcp, rows = run_phases([spec], max(repeat, 5), phases,
                                congestion="cubic", slow_start_after_idle=False)
     except LabUnavailable as exc:
         return {"lab": f"unavailable: {exc}"}
     out: dict = {"tcp": tcp, "delays_ms": list(LATENCY_DELAYS_MS)}
     for side in ("server", "client"):
         names = ["server_0ms"] + [f"{side}_{d:g}ms" for d in LATENCY_DELAYS_MS[1:]]
-        per_it = [rows[name]["service"]["lm-sil-ldlt-n6"]["median_s"] for name in names]
-        beyond = [rows[name]["service"]["lm-sil-ldlt-n6"]["median_beyond_evaluate_s"]
+        per_it = [rows[name]["service"][spec.circuit_id]["median_s"] for name in names]
+        beyond = [rows[name]["service"][spec.circuit_id]["median_beyond_evaluate_s"]
                   for name in names]
         rtt = [rows[name]["links"]["client_evaluator" if side == "client" else
                                    "garbler_evaluator"]["rtt_ms"] for name in names]
@@ -243,7 +257,8 @@ def op_counts(spec: Spec) -> dict[str, int]:
     be = _CountingMirror()
     rng = np.random.default_rng(0)  # the counts do not depend on the values
     inputs = {name: F(be, rng.standard_normal(shape).astype(np.float32))
-              for name, shape in input_shapes(spec.algorithm, spec.points).items()}
+              for name, shape in input_shapes(spec.algorithm, spec.points,
+                                                spec.solver).items()}
     program(spec, inputs)
     return dict(sorted(be.counts.items()))
 
