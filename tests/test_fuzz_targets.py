@@ -69,6 +69,17 @@ def test_json_nested_too_deeply_is_a_named_input_error(text, tmp_path, monkeypat
         TARGETS[target](text.encode())
 
 
+@pytest.mark.parametrize("target, data", [
+    # found by snail-bench fuzz: a list as the family was a TypeError (unhashable)
+    ("tagmap", b'{"format": "snail-tagmap/1", "family":[{"id": 3, "": [0, 0, 0]}]}'),
+])
+def test_fuzz_findings_are_documented_errors(target, data, tmp_path, monkeypatch):
+    monkeypatch.setattr(fuzz_targets, "_SCRATCH", tmp_path)
+    parse, documented = PARSERS[target]
+    with pytest.raises(documented):
+        parse(data)
+
+
 def test_fuzz_command_runs_coverage_guided_when_atheris_is_installed():
     atheris = pytest.importorskip("atheris", reason="the fuzz extra is not installed: "
                                                      "pip install 'snail[fuzz]'")

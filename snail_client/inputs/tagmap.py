@@ -54,7 +54,7 @@ def parse_tagmap(value: Any) -> TagMap:
     top = obj(value, "tag map")
     check_format(top, FORMAT)
     family = field(top, "family")
-    if family not in FAMILIES:
+    if not isinstance(family, str) or family not in FAMILIES:
         raise InputError(f"family: expected one of {sorted(FAMILIES)}, got {family!r}")
     raw = field(top, "tags")
     if not isinstance(raw, list) or not raw:
