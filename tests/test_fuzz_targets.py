@@ -72,6 +72,10 @@ def test_json_nested_too_deeply_is_a_named_input_error(text, tmp_path, monkeypat
 @pytest.mark.parametrize("target, data", [
     # found by snail-bench fuzz: a list as the family was a TypeError (unhashable)
     ("tagmap", b'{"format": "snail-tagmap/1", "family":[{"id": 3, "": [0, 0, 0]}]}'),
+    # and a POINT3D_ID beyond 64 bits was an OverflowError
+    ("colmap_txt", fuzz_targets._split(b"1 PINHOLE 640 480 800 800 320 240\n",
+                                       b"1 1 0 0 0 0 0 5 1 a.png\n300 200 " + b"8" * 40
+                                       + b"\n", b"1 0 0 0 255 0 0 0.5 1 0\n")),
 ])
 def test_fuzz_findings_are_documented_errors(target, data, tmp_path, monkeypatch):
     monkeypatch.setattr(fuzz_targets, "_SCRATCH", tmp_path)

@@ -34,6 +34,7 @@ MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4),
           11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16)}
 MODEL_IDS = {name: (model_id, count) for model_id, (name, count) in MODELS.items()}
 SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+_INT64 = (-(1 << 63), (1 << 63) - 1)  # ids are read into int64 arrays
 FILES = ("cameras", "images", "points3D")
 _OBSERVATION = np.dtype([("x", "<f8"), ("y", "<f8"), ("point3d_id", "<i8")])
 
@@ -210,12 +211,15 @@ class _Text:
         out = []
         for token, kind, name in zip(tokens, types, names):
             try:
-                out.append(int(token) if kind == "i" else float(token) if kind == "f"
-                           else token)
+                value = int(token) if kind == "i" else float(token) if kind == "f" else token
             except ValueError:
                 raise InputError(f"{self.path} line {no}: {name}: not "
                                  f"{'an integer' if kind == 'i' else 'a number'} "
                                  f"({token[:20]!r})") from None
+            if kind == "i" and not _INT64[0] <= value <= _INT64[1]:
+                raise InputError(f"{self.path} line {no}: {name}: beyond 64 bits "
+                                 f"({token[:20]!r}...)")
+            out.append(value)
         return out
 
     def cameras(self) -> dict[int, ColmapCamera]:
