@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import subprocess
 import threading
 import time
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ import pytest
 from fault_proxy import FaultProxy
 from test_service_e2e import cleartext, wait_for
 
-from snail_client.embedded import Daemon, make_certs, start_daemon
+from snail_client.embedded import Daemon, embedded_services, make_certs, start_daemon
 from snail_client.secure import SecureRunner, ServiceError
 from snail_common.circuit import registry
 from snail_common.net.conn import parse_addr
@@ -192,3 +193,46 @@ def test_a_daemon_killed_mid_stream_and_restarted_serves_the_same_client(faulty,
         # the same client object reconnects on its next run
         np.testing.assert_array_equal(client.run(CIRCUIT, bits), cleartext(CIRCUIT, bits))
     _servers_settle_and_serve(faulty, bits)
+
+
+# ---- the disk cache --------------------------------------------------------------------
+SMALL = "ops/fmul-x64"
+
+
+def _run_on_fresh_daemons(cache: Path, circuit: str) -> tuple[list[str], list[str]]:
+    """One run of ``circuit`` on daemons with ``cache``, checked against cleartext; the
+    garbler's and evaluator's log lines."""
+    _, schedule = registry.compiled(circuit)
+    bits = np.random.default_rng(5).random(schedule.n_inputs) < 0.5
+    with embedded_services(log_level="info", env={"SNAIL_CACHE_DIR": str(cache)}) as svc:
+        with SecureRunner(svc.garbler_addr, svc.evaluator_addr, svc.tls_dir) as client:
+            np.testing.assert_array_equal(client.run(circuit, bits), cleartext(circuit, bits))
+        return ([svc.garbler.log.read_text(), svc.evaluator.log.read_text()])
+
+
+def test_a_corrupt_cache_entry_is_rebuilt_and_said(tmp_path):
+    cache = tmp_path / "cache"
+    _run_on_fresh_daemons(cache, SMALL)
+    (victim,) = [p for p in cache.rglob("*.npy") if p.name == "kind.npy"]
+    data = bytearray(victim.read_bytes())
+    data[-1] ^= 0xFF
+    victim.write_bytes(bytes(data))
+    logs = _run_on_fresh_daemons(cache, SMALL)
+    assert any('"cache_entry_rebuilt"' in log and "CRC" in log for log in logs), logs
+
+
+def test_a_full_cache_disk_serves_from_memory_and_says_so(tmp_path):
+    if os.geteuid() != 0:
+        pytest.skip("needs root to mount a tiny tmpfs as a full disk")
+    cache = tmp_path / "full"
+    cache.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(cache)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
+    try:
+        logs = _run_on_fresh_daemons(cache, SMALL)
+    finally:
+        subprocess.run(["umount", "-l", str(cache)], check=False)
+    for log in logs:
+        assert '"cache_store_failed"' in log and "No space left" in log, log
