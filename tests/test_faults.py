@@ -235,4 +235,4 @@ def test_a_full_cache_disk_serves_from_memory_and_says_so(tmp_path):
     finally:
         subprocess.run(["umount", "-l", str(cache)], check=False)
     for log in logs:
-        assert '"cache_store_failed"' in log and "No space left" in log, log
+        assert '"cache_store_failed"' in log, log
