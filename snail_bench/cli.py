@@ -233,7 +233,8 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
 @main.command("fuzz")
 @click.option("--target", "targets", multiple=True, metavar="NAME",
               help="A parser to fuzz (repeatable; default: all of them: frames, message, "
-                   "problem, sequence, camera, tagmap, colmap_bin, colmap_txt, revoked).")
+                   "problem, sequence, camera, tagmap, colmap_bin, colmap_txt, revoked, "
+                   "certificates).")
 @click.option("--runs", type=click.IntRange(1), default=1_000_000, show_default=True,
               help="Inputs per target.")
 @click.option("--seconds", type=click.IntRange(1), default=3600, show_default=True,
