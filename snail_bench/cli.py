@@ -186,11 +186,15 @@ def engine(schemes: tuple[str, ...], as_json: bool) -> None:
 @click.option("--lane-window-ms", type=click.FloatRange(0, 1000), default=None,
               help="Embedded daemons only: their --lane-window-ms (batch concurrent "
                    "sessions into lanes; 0: off; default: the daemons' own).")
+@click.option("--scheme", type=click.Choice(["halfgates", "threehalves"]),
+              default="halfgates", show_default=True,
+              help="Garbling scheme of every session: three-halves sends 0.77x the table "
+                   "bytes but garbles slower, and is never batched into lanes.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def service(algorithm: str, mode: str, solve: str | None, solver: str,
             points: tuple[int, ...], repeat: int,
             garbler: str | None, evaluator: str | None, tls_dir: str | None,
-            clients: int, lane_window_ms: float | None, as_json: bool) -> None:
+            clients: int, lane_window_ms: float | None, scheme: str, as_json: bool) -> None:
     """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
     per link, and the servers' peak memory. Circuits are compiled on first use."""
     from snail_client.embedded import check_addresses
@@ -216,7 +220,7 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
                            f"{row['first_s']:.3f} s", err=True)
 
         report = service_report(specs, repeat, garbler, evaluator, tls_dir, clients,
-                                lane_window_ms, flags.get("quiet", False), done)
+                                lane_window_ms, flags.get("quiet", False), done, scheme)
     except ServiceError as e:
         click.echo(f"snail-bench: {e}", err=True)
         sys.exit(1)

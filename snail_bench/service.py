@@ -33,17 +33,18 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
                    evaluator: str | None = None, tls_dir: str | None = None,
                    clients: int = 1, lane_window_ms: float | None = None,
                    quiet: bool = True,
-                   on_done: Callable[[str, dict], object] | None = None) -> dict:
+                   on_done: Callable[[str, dict], object] | None = None,
+                   scheme: str = "halfgates") -> dict:
     """``{"service": {circuit_id: {...}}}``: per circuit, the first run and ``repeat``
     warm runs (median, min, max wall seconds), bytes per link and server timings of one
     run, and (embedded daemons only) each server's peak RSS so far: a high-water mark
     over the daemon's life, so with several circuits it covers the largest run yet."""
     report: dict[str, dict] = {}
     lanes = () if lane_window_ms is None else ("--lane-window-ms", str(lane_window_ms))
-    with connected(garbler, evaluator, tls_dir, lanes) as (runner, services), \
+    with connected(garbler, evaluator, tls_dir, lanes, scheme=scheme) as (runner, services), \
             bar(len(specs), "circuits", quiet, "circuit") as progress:
         for spec in specs:
-            report[spec.circuit_id] = _measure(runner, spec, repeat)
+            report[spec.circuit_id] = {**_measure(runner, spec, repeat), "scheme": scheme}
             if clients > 1:
                 report[spec.circuit_id].update(_fleet(runner, spec, repeat, clients))
             if services is not None:
@@ -89,7 +90,8 @@ def _fleet(runner: SecureRunner, spec: Spec, repeat: int, clients: int) -> dict:
 
         async def client() -> float:
             rng = np.random.default_rng(secrets.randbits(128))
-            async with AsyncSecureRunner(garbler, evaluator, tls_dir) as r:
+            async with AsyncSecureRunner(garbler, evaluator, tls_dir,
+                                         scheme=runner.scheme) as r:
                 def bits() -> np.ndarray:
                     return rng.integers(0, 2, iface.n_inputs).astype(bool)
 

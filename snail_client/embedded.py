@@ -142,7 +142,7 @@ def check_addresses(garbler: str | None, evaluator: str | None,
 def connected(garbler: str | None = None, evaluator: str | None = None,
               tls_dir: str | None = None, daemon_args: tuple[str, ...] = (),
               busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
-              link_timeout: float = DEFAULT_LINK_TIMEOUT,
+              link_timeout: float = DEFAULT_LINK_TIMEOUT, scheme: str = "halfgates",
               ) -> Iterator[tuple[SecureRunner, Services | None]]:
     """A runner for the servers at these addresses, or for embedded ones started for the
     block with ``daemon_args`` (yielded too, so a caller can watch them; None for remote
@@ -150,11 +150,11 @@ def connected(garbler: str | None = None, evaluator: str | None = None,
     check_addresses(garbler, evaluator, tls_dir)
     if garbler:
         with SecureRunner(garbler, evaluator, tls_dir, busy_wait=busy_wait,
-                          link_timeout=link_timeout,
+                          link_timeout=link_timeout, scheme=scheme,
                           cert_name=cert_name) as runner:
             yield runner, None
         return
     with embedded_services(extra_args=daemon_args) as services, SecureRunner(
             services.garbler_addr, services.evaluator_addr, services.tls_dir,
-            busy_wait=busy_wait, link_timeout=link_timeout) as runner:
+            busy_wait=busy_wait, link_timeout=link_timeout, scheme=scheme) as runner:
         yield runner, services

@@ -42,6 +42,7 @@ class Options(PipelineOptions):
     tls_dir: str | None = None
     busy_wait: float = DEFAULT_BUSY_WAIT
     link_timeout: float = DEFAULT_LINK_TIMEOUT
+    scheme: str = "halfgates"
     max_rms_px: float = DEFAULT_MAX_RMS_PX
     cert_name: str = "client"
 
@@ -95,7 +96,8 @@ def backend_for(options: Options) -> Iterator[Backend]:
     else:
         with connected(options.garbler, options.evaluator, options.tls_dir,
                        busy_wait=options.busy_wait, cert_name=options.cert_name,
-                       link_timeout=options.link_timeout) as (runner, _):
+                       link_timeout=options.link_timeout,
+                       scheme=options.scheme) as (runner, _):
             yield GarbledBackend(runner)
 
 
@@ -134,6 +136,8 @@ def record(result: Localized, options: Options, traffic: dict[str, int],
     }
     if problem.reference_pose is not None:
         out["error"] = pose_error(result.rvec, result.tvec, problem.reference_pose)
+    if options.backend == "garbled":
+        out["scheme"] = options.scheme
     if options.backend != "float64":
         iface = interface(result.spec)
         out["circuit"] = {"and": iface.counts["and"], "xor": iface.counts["xor"],

@@ -79,6 +79,11 @@ def _options(fn: Callable) -> Callable:
                      default=DEFAULT_BUSY_WAIT, show_default=True, metavar="SECONDS",
                      help="How long a secure run retries servers that answer busy (at "
                           "their session limit), with jittered backoff, before failing."),
+        click.option("--scheme", type=click.Choice(["halfgates", "threehalves"]),
+                     default="halfgates", show_default=True,
+                     help="Garbling scheme: three-halves (Rosulek-Roy 2021) sends 0.77x the "
+                          "garbled-table bytes of half-gates but garbles slower: worth it "
+                          "on a slow garbler-evaluator link."),
         click.option("--link-timeout", type=click.FloatRange(1, 3600),
                      default=DEFAULT_LINK_TIMEOUT, show_default=True, metavar="SECONDS",
                      help="A server link a run waits on is probed after a fifth of this "
@@ -99,7 +104,8 @@ def _make_options(kw: dict) -> Options:
         return Options(**{k: kw[k] for k in (
             "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
             "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations",
-            "busy_wait", "max_rms_px", "cert_name", "solve", "link_timeout")})
+            "busy_wait", "max_rms_px", "cert_name", "solve", "link_timeout",
+            "scheme")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 

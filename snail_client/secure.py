@@ -121,7 +121,8 @@ class AsyncSecureRunner:
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
-                 link_timeout: float = DEFAULT_LINK_TIMEOUT) -> None:
+                 link_timeout: float = DEFAULT_LINK_TIMEOUT,
+                 scheme: str = "halfgates") -> None:
         families.register_all()
         self.garbler_addr = _addr(garbler_addr, "garbler address")
         self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
@@ -132,6 +133,10 @@ class AsyncSecureRunner:
         self.ahead = ahead
         self.busy_wait = busy_wait
         self.link_timeout = link_timeout
+        if scheme not in messages.SCHEMES:
+            raise ValueError(f"scheme must be one of {', '.join(messages.SCHEMES)}, "
+                             f"got {scheme!r}")
+        self.scheme = scheme  # the garbling scheme of every session this runner asks for
         self.last: Invocation | None = None
         self.totals = dict.fromkeys(LINKS, 0)
         self.invocations = 0
@@ -268,10 +273,11 @@ class AsyncSecureRunner:
         chash = iface.content_hash
         try:
             sent_e = evaluator.conn.write(messages.make(
-                "session_start", sid=sid, circuit=circuit_id, hash=chash))
+                "session_start", sid=sid, circuit=circuit_id, hash=chash,
+                scheme=self.scheme))
             sent_g = garbler.conn.write(messages.make(
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
-                delta=labels_to_bytes(delta), key=key))
+                delta=labels_to_bytes(delta), key=key, scheme=self.scheme))
             await asyncio.gather(evaluator.conn.drain(), garbler.conn.drain())
         except ConnectionClosed as exc:
             garbler.cancel(sid)
@@ -376,11 +382,12 @@ class SecureRunner:
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
-                 link_timeout: float = DEFAULT_LINK_TIMEOUT) -> None:
+                 link_timeout: float = DEFAULT_LINK_TIMEOUT,
+                 scheme: str = "halfgates") -> None:
         self._loop = new_event_loop()
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
                                          connect_timeout, ahead, busy_wait, cert_name,
-                                         link_timeout)
+                                         link_timeout, scheme)
 
     def expect(self, circuit_id: str, count: int) -> None:
         """At least ``count`` invocations of ``circuit_id`` are coming (see the async

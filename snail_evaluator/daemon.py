@@ -33,6 +33,7 @@ from typing import Any
 from snail_common.circuit.ir import FIRST_INPUT
 from snail_common.circuit.schedule import Schedule
 from snail_common.gc import StreamError
+from snail_common.gc.stream import scheme_id
 from snail_common.net import messages
 from snail_common.net.chunks import LabelAssembler, write_labels
 from snail_common.net.conn import Connection
@@ -54,6 +55,10 @@ from snail_common.net.service import Daemon, Options
 
 from .lanes import EvalLane, LaneBatcher, Solo
 
+# input-label bytes a session may send before its circuit is loaded: far above the
+# largest circuit's inputs (n = 4096 points take about 10 MB), far below a memory risk
+MAX_EARLY_LABEL_BYTES = 64 << 20
+
 
 @dataclass(eq=False)
 class Session:
@@ -74,6 +79,9 @@ class Session:
     bytes_in: int = 0
     bytes_out: int = 0
     queued: int = 0  # table bytes buffered while the labels are awaited
+    scheme: str = "halfgates"  # as both halves declared it; the stream header must agree
+    early: list[tuple[dict[str, Any], int]] = field(default_factory=list)  # labels that
+    # came while the circuit was still loading, replayed once it is
 
     def record(self, outcome: str, reason: str = "") -> dict:
         """This session's log line fields (see Daemon.log_session)."""
@@ -121,7 +129,8 @@ class EvaluatorDaemon(Daemon):
     def _open(self, msg: dict[str, Any], size: int, peer: str = "") -> Session:
         self.admit(peer)
         s = Session(msg["sid"], msg["circuit"], msg["hash"],
-                    asyncio.get_running_loop().create_future(), peer=peer, bytes_in=size)
+                    asyncio.get_running_loop().create_future(), peer=peer, bytes_in=size,
+                    scheme=msg.get("scheme", "halfgates"))
         s.ready.add_done_callback(_consume)
         self.sessions[s.sid] = s
         return s
@@ -161,16 +170,28 @@ class EvaluatorDaemon(Daemon):
             raise ProtocolError(BAD_REQUEST, f"client and garbler disagree on the circuit "
                                              f"of this session ({s.circuit} vs "
                                              f"{msg['circuit']})")
+        if msg.get("scheme", "halfgates") != s.scheme:
+            raise ProtocolError(BAD_REQUEST, f"client and garbler disagree on the garbling "
+                                             f"scheme of this session ({s.scheme} vs "
+                                             f"{msg.get('scheme', 'halfgates')})")
 
     # ---- the client side -------------------------------------------------------------------
     async def _serve_client(self, conn: Connection) -> None:
+        """A client's messages, each handled at once: a circuit being loaded or compiled
+        for a session does not hold up the connection (a client probes a quiet link with
+        ``health_request`` and gives it up if unanswered)."""
+        loading: set[asyncio.Task] = set()
         try:
             while True:
                 msg, size = await self.next_message(
                     conn, lambda: any(s.client is conn for s in self.sessions.values()))
                 kind = msg["t"]
                 if kind == "session_start":
-                    await self._client_start(conn, msg, size)
+                    s = self._client_start(conn, msg, size)
+                    if s is not None:
+                        task = asyncio.get_running_loop().create_task(self._client_load(s))
+                        loading.add(task)
+                        task.add_done_callback(loading.discard)
                 elif kind == "input_labels":
                     self._client_labels(conn, msg, size)
                 elif kind == "error" and "sid" in msg:
@@ -185,10 +206,14 @@ class EvaluatorDaemon(Daemon):
                     raise ProtocolError(UNEXPECTED, f"a client may not send {kind} to the "
                                                     "evaluator")
         finally:
+            for task in loading:
+                task.cancel()
             for s in [s for s in self.sessions.values() if s.client is conn]:
                 self._fail(s, ProtocolError(ABORTED, "the client disconnected"))
 
-    async def _client_start(self, conn: Connection, msg: dict[str, Any], size: int) -> None:
+    def _client_start(self, conn: Connection, msg: dict[str, Any],
+                      size: int) -> Session | None:
+        """The client's half of a session (None if refused: the client was told)."""
         sid = msg["sid"]
         try:
             s = self.sessions.get(sid)
@@ -208,9 +233,13 @@ class EvaluatorDaemon(Daemon):
                 self.log_session(peer=conn.peer_name, sid=sid, circuit=msg["circuit"],
                                  n_and=0, bytes_in=size, bytes_out=0, seconds=0.0,
                                  outcome=exc.code, reason=exc.message)
-            return
+            return None
+        return s
+
+    async def _client_load(self, s: Session) -> None:
+        """Load (or compile) the session's circuit, then take the labels that came early."""
         try:
-            _, schedule = await self.circuit(msg["circuit"], msg["hash"])
+            _, schedule = await self.circuit(s.circuit, s.hash)
         except ProtocolError as exc:
             self._fail(s, exc)
             return
@@ -218,6 +247,9 @@ class EvaluatorDaemon(Daemon):
         if s.failure is None:
             s.labels = LabelAssembler("input_labels", FIRST_INPUT + schedule.n_inputs)
             self._arm(s)
+            early, s.early = s.early, []
+            for msg, size in early:
+                self._add_labels(s, msg, size)
 
     def _client_labels(self, conn: Connection, msg: dict[str, Any], size: int) -> None:
         s = self.sessions.get(msg["sid"])
@@ -226,6 +258,16 @@ class EvaluatorDaemon(Daemon):
                                                  "(never started, failed or finished)",
                                      msg["sid"]))
             return
+        if s.labels is None:  # its circuit is still loading
+            if sum(n for _, n in s.early) + size > MAX_EARLY_LABEL_BYTES:
+                self._fail(s, ProtocolError(BAD_REQUEST, "more input labels than any "
+                                                         "circuit takes"))
+            elif s.failure is None:
+                s.early.append((msg, size))
+            return
+        self._add_labels(s, msg, size)
+
+    def _add_labels(self, s: Session, msg: dict[str, Any], size: int) -> None:
         s.bytes_in += size
         try:
             s.labels.add(msg)
@@ -315,6 +357,7 @@ class EvaluatorDaemon(Daemon):
         Returns the evaluation, the bytes received, how many of them came before the
         labels and when the labels arrived."""
         received, ahead, timeout = 0, 0, self.options.session_timeout
+        laned = s.scheme == "halfgates"  # lanes batch half-gates sessions only
         buffered: list[bytes] = []
         ev: Solo | EvalLane | None = None
         t_labels = time.monotonic()
@@ -322,7 +365,8 @@ class EvaluatorDaemon(Daemon):
         try:
             while ev is None or not ev.stream_complete:
                 if ev is None and s.ready.done():  # raises the session's failure, if any
-                    ev = await self.lanes.lane(s.circuit, schedule, s.ready.result())
+                    ev = (await self.lanes.lane(s.circuit, schedule, s.ready.result())
+                          if laned else Solo(schedule, s.ready.result(), scheme_id(s.scheme)))
                     if s.watchdog:
                         s.watchdog.cancel()
                     t_labels = time.monotonic()
@@ -369,7 +413,7 @@ class EvaluatorDaemon(Daemon):
                 ev.drop()  # a batch goes on without this lane
             raise
         finally:
-            if ev is not None:
+            if ev is not None and laned:
                 self.lanes.release(s.circuit)
             self.ahead_buffered -= s.queued
             s.queued = 0

@@ -30,8 +30,9 @@ class Solo:
 
     lanes = 1
 
-    def __init__(self, schedule: Schedule, labels: np.ndarray) -> None:
-        self._ev = Evaluator(schedule, labels)
+    def __init__(self, schedule: Schedule, labels: np.ndarray,
+                 scheme: int | None = SCHEME_HALF_GATES) -> None:
+        self._ev = Evaluator(schedule, labels, scheme)
 
     def feed(self, data: bytes) -> None:
         self._ev.feed(data)

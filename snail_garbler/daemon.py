@@ -32,6 +32,7 @@ from typing import Any
 
 from snail_common.circuit.schedule import Schedule
 from snail_common.gc import Garbler, check_delta
+from snail_common.gc.stream import SCHEME_HALF_GATES, scheme_id, table_words
 from snail_common.net import messages
 from snail_common.net.chunks import write_labels
 from snail_common.net.conn import Connection, connect
@@ -61,17 +62,17 @@ FRAME_SECONDS = 2e-3
 AND_SECONDS = 120e-9
 STEP_SECONDS = 15e-6
 MIN_FRAME, MAX_FRAME_BYTES = 4 << 10, 1 << 20
-BYTES_PER_AND = 32
 
 
-def frame_plan(schedule: Schedule) -> tuple[int, int]:
+def frame_plan(schedule: Schedule, scheme: int = SCHEME_HALF_GATES) -> tuple[int, int]:
     """(block_gates, frame_bytes) for garbling ``schedule``: about FRAME_SECONDS of work
     per frame, between 4 KiB and 1 MiB; blocks of at most 8192 gates fill a frame."""
+    per_and = 8 * table_words(scheme, 1 << 13) / (1 << 13)  # bytes per AND in the stream
     seconds = schedule.n_and * AND_SECONDS + schedule.n_steps * STEP_SECONDS
     frames = max(1.0, seconds / FRAME_SECONDS)
-    size = int(min(MAX_FRAME_BYTES, max(MIN_FRAME, BYTES_PER_AND * schedule.n_and / frames)))
-    block = 1 << max(7, min(13, (size // BYTES_PER_AND).bit_length() - 1))
-    return block, max(size, block * BYTES_PER_AND)
+    size = int(min(MAX_FRAME_BYTES, max(MIN_FRAME, per_and * schedule.n_and / frames)))
+    block = 1 << max(7, min(13, int(size // per_and).bit_length() - 1))
+    return block, max(size, 8 * table_words(scheme, block))
 
 
 class GarblerDaemon(Daemon):
@@ -147,13 +148,16 @@ class GarblerDaemon(Daemon):
                 check_delta(req["delta"])
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
-            block, frame = frame_plan(schedule)
-            garbler = await self.lanes.lane(req["circuit"], schedule, req["seed"],
-                                            req["delta"], req["key"], block, frame)
+            scheme = scheme_id(req.get("scheme", "halfgates"))
+            block, frame = frame_plan(schedule, scheme)
+            garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
+                                             req["delta"], req["key"], block, frame)
+                       if scheme == SCHEME_HALF_GATES else None)  # lanes are half-gates
             running = True
             if garbler is None:
                 make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
-                                         req["key"], block_gates=block, frame_bytes=frame)
+                                         req["key"], block_gates=block, frame_bytes=frame,
+                                         scheme=scheme)
                 # deriving the input labels is AES over the inputs: inline unless large
                 garbler = (make() if schedule.n_inputs < INLINE_INPUTS
                            else await self.work(make))
@@ -231,7 +235,8 @@ class GarblerDaemon(Daemon):
         already answered ``done`` (it may finish before the garbler's loop does)."""
         sid, timeout = req["sid"], self.options.session_timeout
         sent = evaluator.write(messages.make("session_start", sid=sid, circuit=req["circuit"],
-                                             hash=req["hash"]))
+                                             hash=req["hash"],
+                                             scheme=req.get("scheme", "halfgates")))
         frames = garbler.frames()
         pending = self.submit(next, frames, None)
         answered = False

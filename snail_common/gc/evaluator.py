@@ -30,10 +30,13 @@ from .threehalves import ThreeHalves
 
 class Evaluator:
     """Evaluates one run of ``schedule`` from the client's active input labels
-    (slots 0 .. n_inputs+1: constant 0, constant 1, then the inputs)."""
+    (slots 0 .. n_inputs+1: constant 0, constant 1, then the inputs). With ``scheme``
+    (a stream scheme number) a stream garbled under another scheme is refused."""
 
-    def __init__(self, schedule: Schedule, input_labels: np.ndarray) -> None:
+    def __init__(self, schedule: Schedule, input_labels: np.ndarray,
+                 scheme: int | None = None) -> None:
         s = self._schedule = schedule
+        self._expected_scheme = scheme
         inputs = np.asarray(input_labels, dtype=np.uint64)
         if inputs.shape != (FIRST_INPUT + s.n_inputs, 2):
             raise ValueError(f"expected {FIRST_INPUT + s.n_inputs} input labels, "
@@ -88,6 +91,9 @@ class Evaluator:
     def _start(self, header: Header) -> None:
         s = self._schedule
         header.check(s.n_and, s.n_inputs, len(s.output_slots))
+        if self._expected_scheme not in (None, header.scheme):
+            raise StreamError(f"the stream is garbled with scheme {header.scheme}, the "
+                              f"session agreed on {self._expected_scheme}")
         self.header = header
         kind = HalfGates if header.scheme == SCHEME_HALF_GATES else ThreeHalves
         kernel = kind(header.key, header.block_gates)

@@ -30,6 +30,8 @@ import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from snail_common.gc.stream import SCHEMES
+
 from .errors import MALFORMED, MISSING_FIELD, UNKNOWN_FIELD, UNKNOWN_TYPE, ProtocolError
 
 ROLES = ("client", "garbler", "evaluator")
@@ -114,6 +116,7 @@ sid = blob(SID_BYTES)
 labels = blob(multiple=LABEL_BYTES)
 key16 = blob(16)
 circuit = text(128)
+scheme = one_of(tuple(SCHEMES))  # the garbling scheme; absent means half-gates
 
 # type -> (required fields, optional fields)
 SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
@@ -121,9 +124,10 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "capabilities": ({"role": one_of(ROLES), "software": text(64), "max_frame": count,
                       "families": text_list, "max_sessions": count},
                      {"max_and_gates": count}),
-    "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash}, {}),
+    "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash},
+                      {"scheme": scheme}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
-                        "delta": key16, "key": key16}, {}),
+                        "delta": key16, "key": key16}, {"scheme": scheme}),
     "input_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
     "tables": ({"sid": sid, "data": blob()}, {}),
     "done": ({"sid": sid}, {}),
