@@ -113,17 +113,22 @@ _TLS_FILES = ("ca.pem", "client.pem", "client.key", "ca.key")
 
 
 def _tls_folder() -> Path:
-    """A valid TLS folder made once per process; each input works on a fresh copy of it."""
-    base = _scratch_dir() / "tls-valid"
-    if not base.is_dir():
-        make_certs(base)
+    """A valid TLS folder made once per process, put back before each input: only the
+    file the previous input replaced is rewritten, and a certificate it issued removed."""
     work = _scratch_dir() / "tls"
-    work.mkdir(exist_ok=True)
-    for file in base.iterdir():
-        (work / file.name).write_bytes(file.read_bytes())
+    if not work.is_dir():
+        make_certs(work)
+        _TLS_VALID.update({f.name: f.read_bytes() for f in work.iterdir()})
+    for name in _TLS_DIRTY:
+        (work / name).write_bytes(_TLS_VALID[name])
+    _TLS_DIRTY.clear()
     for extra in work.glob("robot.*"):
         extra.unlink()
     return work
+
+
+_TLS_VALID: dict[str, bytes] = {}
+_TLS_DIRTY: set[str] = set()
 
 
 def certificates(data: bytes) -> None:
@@ -132,7 +137,9 @@ def certificates(data: bytes) -> None:
     client certificate, as a device and ``snail-client certs --client`` do."""
     folder = _tls_folder()
     pick = data[0] if data else 0
-    (folder / _TLS_FILES[pick % len(_TLS_FILES)]).write_bytes(data[1:])
+    name = _TLS_FILES[pick % len(_TLS_FILES)]
+    _TLS_DIRTY.add(name)
+    (folder / name).write_bytes(data[1:])
     if pick & 4:
         add_client(folder, "robot")
     else:

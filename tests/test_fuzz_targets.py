@@ -76,6 +76,11 @@ def test_json_nested_too_deeply_is_a_named_input_error(text, tmp_path, monkeypat
     ("colmap_txt", fuzz_targets._split(b"1 PINHOLE 640 480 800 800 320 240\n",
                                        b"1 1 0 0 0 0 0 5 1 a.png\n300 200 " + b"8" * 40
                                        + b"\n", b"1 0 0 0 255 0 0 0.5 1 0\n")),
+    # and a CA key whose algorithm OID is unknown was cryptography's UnsupportedAlgorithm
+    ("certificates", b"\x07-----BEGIN PRIVATE KEY-----\nMIGHAgEAMBMGBxqGSM49AgEGCCqGSM49AwEHBG0w"
+     b"awIBAQQgPdrR9A04i9Zh5jJP\nxxoZTZnpg2Zvc8wYp4EdXGBIBSihRANCAAS/OAkQOGDKSo1aXWp9LgnEotX7"
+     b"ILIk\nguUY36dqOmD2WGSPFDRaHsJDmvsXvBQoqj+1sv7b/5IT4ehuD68eKZhZ\n-----END PRIVATE KEY"
+     b"-----\n"),
 ])
 def test_fuzz_findings_are_documented_errors(target, data, tmp_path, monkeypatch):
     monkeypatch.setattr(fuzz_targets, "_SCRATCH", tmp_path)

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cryptography import x509
+from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
@@ -143,7 +144,7 @@ def add_client(directory: str | Path, name: str, days: int = VALID_DAYS) -> Path
     try:
         ca_key = serialization.load_pem_private_key(key_path(out, CA).read_bytes(), None)
         ca_cert = x509.load_pem_x509_certificate(cert_path(out, CA).read_bytes())
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, UnsupportedAlgorithm) as exc:
         raise TLSFileError(f"{out} holds no usable CA (ca.pem and ca.key: "
                            f"{getattr(exc, 'strerror', None) or exc}; {_REMEDY})") from None
     if not isinstance(ca_key, ec.EllipticCurvePrivateKey):
