@@ -253,7 +253,19 @@ class AsyncSecureRunner:
         return self.last
 
     async def _prepare(self, circuit_id: str) -> _Prepared:
-        """Ask for a session's garbling now, with fresh secrets."""
+        """Ask for a session's garbling now, with fresh secrets. A link that died while
+        this client was idle (a restarted server: its end of the connection is found
+        closed only when written to) is reconnected once, with new secrets."""
+        try:
+            return await self._prepare_once(circuit_id)
+        except ConnectionClosed:
+            pass
+        try:
+            return await self._prepare_once(circuit_id)
+        except ConnectionClosed as exc:
+            raise ServiceError(f"{circuit_id}: {exc}") from None
+
+    async def _prepare_once(self, circuit_id: str) -> _Prepared:
         loop = asyncio.get_running_loop()
         try:
             registry.check_id(circuit_id)
@@ -279,10 +291,10 @@ class AsyncSecureRunner:
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
                 delta=labels_to_bytes(delta), key=key, scheme=self.scheme))
             await asyncio.gather(evaluator.conn.drain(), garbler.conn.drain())
-        except ConnectionClosed as exc:
+        except ConnectionClosed:
             garbler.cancel(sid)
             evaluator.cancel(sid)
-            raise ServiceError(f"{circuit_id}: {exc}") from None
+            raise
         return _Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
                          sent_g, sent_e)
 
