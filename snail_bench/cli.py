@@ -260,7 +260,8 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
     fds per minute (largest sample). Verdict: flat when, for each daemon, the last
     minute's RSS and fds are within 10 % of the second minute's (null under 3 minutes).
     Exit 1 on any wrong result or any failure other than busy (a server at its session
-    limit beyond the client's busy wait), else 0."""
+    limit beyond the client's busy wait), else 0. Clients finish the frame under way at
+    the end; that wind-down is reported apart."""
     from .soak import Plan, run_soak
 
     plan = Plan(clients, minutes, points or SERVICE_POINTS, algorithms or ("lm", "gn"),
@@ -292,9 +293,11 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
         click.echo(json.dumps(report))
     else:
         lat = body["latency_s"]
-        click.echo(f"{body['clients']} clients, {body['elapsed_s']:.0f} s: "
-                   f"{body['invocations']} invocations in {body['frames']} frames, "
-                   f"{body['wrong']} wrong, failures {body['failures'] or 'none'}")
+        click.echo(f"{body['clients']} clients, {body['minutes'] * 60:.0f} s: "
+                   f"{body['invocations']} invocations (and "
+                   f"{body['wind_down']['invocations']} in the {body['wind_down']['seconds']:.0f}"
+                   f" s wind-down), {body['frames']} frames checked, {body['wrong']} wrong, "
+                   f"failures {body['failures'] or 'none'}")
         click.echo(f"latency p50 {lat['p50']} s  p95 {lat['p95']} s  p99 {lat['p99']} s")
         click.echo(f"invocations per minute {body['invocations_per_minute']}")
         for what in ("rss_mb", "fds"):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import math
 import multiprocessing as mp
 import os
@@ -222,6 +223,26 @@ def footprint(pid: int) -> tuple[float, int] | None:
     return None
 
 
+def daemon_log(path: Path) -> dict:
+    """What a daemon's JSON log says about the run: sessions by outcome, and warnings and
+    errors by event (the operator's view, beside the clients')."""
+    sessions: Counter = Counter()
+    troubles: Counter = Counter()
+    for line in path.read_text(errors="replace").splitlines():
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            troubles["unparsed_line"] += 1
+            continue
+        if not isinstance(entry, dict):
+            continue
+        if entry.get("event") == "session":
+            sessions[str(entry.get("outcome"))] += 1
+        elif entry.get("level") in ("warning", "error", "critical"):
+            troubles[f"{entry.get('level')}:{entry.get('event')}"] += 1
+    return {"sessions": dict(sessions), "warnings": dict(troubles)}
+
+
 def _sampler(pids: dict[str, int], start: float, every: float, tally: Tally,
              stop: threading.Event) -> None:
     while True:
@@ -271,7 +292,7 @@ def run_soak(plan: Plan, quiet: bool = True) -> dict:
     tally = Tally()
     ctx = mp.get_context("spawn")  # fresh interpreters: nothing shared with this one
     out: mp.Queue = ctx.Queue()
-    with embedded_services() as services:
+    with embedded_services(log_level="info") as services:
         tls_dir = str(services.tls_dir)
         garbler, evaluator = services.garbler_addr, services.evaluator_addr
         names = [f"soak-{i:03d}" for i in range(plan.clients)]
@@ -299,7 +320,10 @@ def run_soak(plan: Plan, quiet: bool = True) -> dict:
                     proc.terminate()
                 proc.join(10)
         elapsed = time.monotonic() - start
-    return summarize(tally, plan, elapsed)
+        logs = {d.role: daemon_log(d.log) for d in (services.garbler, services.evaluator)}
+    report = summarize(tally, plan, elapsed)
+    report["soak"]["daemon_logs"] = logs
+    return report
 
 
 def _collect(procs: list, out: mp.Queue, tally: Tally, plan: Plan, start: float,
@@ -328,13 +352,18 @@ def _collect(procs: list, out: mp.Queue, tally: Tally, plan: Plan, start: float,
 def summarize(tally: Tally, plan: Plan, elapsed: float) -> dict:
     """The report: FORMATS' fields (invocations, wrong, failures, latency_s, rss_mb, fds)
     and per-minute series, the flatness verdict and what is needed to reproduce a
-    wrong frame."""
-    buckets = plan.buckets
-    per_minute = bucket(tally.invocations, buckets)
-    rss = {role: per_minute_max([(t, mb) for t, r, mb, _ in tally.samples if r == role],
-                                buckets) for role in ROLES}
-    fds = {role: per_minute_max([(t, n) for t, r, _, n in tally.samples if r == role],
-                                buckets) for role in ROLES}
+    wrong frame. Clients finish the frame under way at the end (so it can be checked):
+    that wind-down, with ever fewer clients, is left out of the invocation counts,
+    latencies and per-minute values and reported apart; its frames are still checked and
+    its failures counted, and the raw samples cover it."""
+    buckets, window = plan.buckets, plan.minutes * 60
+    inside = [(t, latency) for t, latency in tally.invocations if t < window]
+    per_minute = bucket(inside, buckets)
+    within = [sample for sample in tally.samples if sample[0] < window]
+    rss = {role: per_minute_max([(t, mb) for t, r, mb, _ in within if r == role], buckets)
+           for role in ROLES}
+    fds = {role: per_minute_max([(t, n) for t, r, _, n in within if r == role], buckets)
+           for role in ROLES}
     verdicts = {f"{what}/{role}": flat(series[role])
                 for what, series in (("rss_mb", rss), ("fds", fds)) for role in ROLES}
     overall = None if None in verdicts.values() else all(verdicts.values())
@@ -344,10 +373,12 @@ def summarize(tally: Tally, plan: Plan, elapsed: float) -> dict:
         "clients": plan.clients, "minutes": plan.minutes, "elapsed_s": round(elapsed, 1),
         "points": list(plan.points), "algorithms": list(plan.algorithms),
         "min_invocations": plan.min_invocations,
-        "invocations": len(tally.invocations), "frames": tally.frames,
+        "invocations": len(inside), "frames": tally.frames,
+        "wind_down": {"seconds": round(max(elapsed - window, 0.0), 1),
+                      "invocations": len(tally.invocations) - len(inside)},
         "wrong": len(tally.wrong), "failures": dict(tally.failures),
         "unexplained_failures": unexplained,
-        "latency_s": percentiles([latency for _, latency in tally.invocations]),
+        "latency_s": percentiles([latency for _, latency in inside]),
         "rss_mb": rss, "fds": fds,
         "invocations_per_minute": [len(values) for values in per_minute],
         "latency_per_minute_s": {p: [row[p] for row in minute_latency]

@@ -42,6 +42,8 @@ def plot_soak(soak: dict, path: Path) -> Path:
         t = [row[0] / 60 for row in rows]
         ax_rss.plot(t, [row[1] for row in rows], label=role, **ROLE_STYLE.get(role, {}))
         ax_fds.plot(t, [row[2] for row in rows], label=role, **ROLE_STYLE.get(role, {}))
+    for ax in (ax_rss, ax_fds):  # after this, clients only finish their last frame
+        ax.axvline(soak["minutes"], color="grey", linestyle=":", label="end")
     ax_rss.set_ylabel("RSS (MB)")
     ax_rss.set_ylim(bottom=0)
     ax_fds.set_ylabel("open file descriptors")

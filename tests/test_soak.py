@@ -18,6 +18,7 @@ from snail_bench.soak import (
     Tally,
     bucket,
     check_frame,
+    daemon_log,
     failure_kind,
     flat,
     minute_of,
@@ -45,7 +46,8 @@ def test_short_soak_reports_checked_frames_and_the_daemons_footprint(tmp_path):
     assert (tmp_path / "soak.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert {"invocations", "wrong", "failures", "latency_s", "rss_mb", "fds"} <= set(body)
     assert body["wrong"] == 0 and body["unexplained_failures"] == 0 and body["ok"]
-    assert body["frames"] >= 2 and body["invocations"] >= 4 * body["frames"]
+    assert body["frames"] >= 2
+    assert body["invocations"] + body["wind_down"]["invocations"] >= 4 * body["frames"]
     assert sum(body["invocations_per_minute"]) == body["invocations"]
     lat = body["latency_s"]
     assert 0 < lat["p50"] <= lat["p95"] <= lat["p99"] < 60
@@ -101,16 +103,18 @@ def test_flat_compares_the_last_minute_with_the_second(series, expected):
 
 def _tally(failures: Counter, wrong: int = 0) -> Tally:
     samples = []
-    for t in range(0, 240, 2):
-        samples += [(float(t), "garbler", 200.0 + (t >= 180) * 30, 40),
+    for t in range(0, 250, 2):  # samples after the end (t >= 240) are wind-down
+        samples += [(float(t), "garbler", 200.0 + (t >= 180) * 30 + (t >= 240) * 700, 40),
                     (float(t), "evaluator", 300.0, 40 + (t >= 180))]
-    return Tally(invocations=[(t * 1.5, 0.5 + t / 100) for t in range(100)], frames=5,
+    invocations = [(t * 1.5, 0.5 + t / 100) for t in range(100)] + [(241.0, 99.0)] * 7
+    return Tally(invocations=invocations, frames=5,
                  wrong=[{"seed": 1}] * wrong, failures=failures, samples=samples)
 
 
 def test_summary_shape_verdicts_and_what_counts_against_the_run():
-    body = summarize(_tally(Counter()), Plan(16, 4), 240.0)["soak"]
+    body = summarize(_tally(Counter()), Plan(16, 4), 245.0)["soak"]
     assert body["invocations"] == 100 and body["invocations_per_minute"] == [40, 40, 20, 0]
+    assert body["wind_down"] == {"seconds": 5.0, "invocations": 7}  # not in the minutes
     assert body["rss_mb"]["garbler"] == [200.0, 200.0, 200.0, 230.0]
     assert body["fds"]["evaluator"] == [40, 40, 40, 41]
     assert body["flat_by_series"] == {"rss_mb/garbler": False, "rss_mb/evaluator": True,
@@ -133,3 +137,18 @@ def test_failures_count_under_the_servers_code_or_what_the_client_saw():
                                      "with")) == "integrity"
     assert failure_kind(ServiceError("garbler 127.0.0.1:1: connection lost")) == "connection"
     assert failure_kind(ValueError("bad")) == "client_ValueError"
+
+
+def test_daemon_logs_are_counted_by_session_outcome_and_trouble(tmp_path):
+    log = tmp_path / "garbler.log"
+    lines = [{"level": "info", "event": "listening", "port": 1},
+             {"level": "info", "event": "session", "outcome": "ok"},
+             {"level": "info", "event": "session", "outcome": "ok"},
+             {"level": "warning", "event": "session", "outcome": "timeout"},
+             {"level": "warning", "event": "connection_refused"},
+             {"level": "error", "event": "internal"}]
+    log.write_text("\n".join(json.dumps(e) for e in lines) + "\nTraceback (most recent)\n")
+    assert daemon_log(log) == {
+        "sessions": {"ok": 2, "timeout": 1},
+        "warnings": {"warning:connection_refused": 1, "error:internal": 1,
+                     "unparsed_line": 1}}
