@@ -256,9 +256,11 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
     """A fleet of client processes localizing random scenes (mixed sizes and algorithms)
     against one daemon pair on loopback for --minutes; every frame's pose is checked bit
     for bit against the cleartext backend on the same scene. Reports invocations, failures
-    by kind, latency percentiles (overall and per minute), and each daemon's RSS and open
-    fds per minute (largest sample). Verdict: flat when, for each daemon, the last
-    minute's RSS and fds are within 10 % of the second minute's (null under 3 minutes).
+    by kind, latency percentiles (overall and per minute), and each daemon's RSS, open
+    fds, sessions and tables buffered ahead per minute (largest sample), whether both
+    daemons are idle once the clients left, and their logs' session outcomes. Verdict:
+    flat when, for each daemon, the last minute's RSS and fds are within 10 % of the
+    second minute's (null under 3 minutes).
     Exit 1 on any wrong result or any failure other than busy (a server at its session
     limit beyond the client's busy wait), else 0. Clients finish the frame under way at
     the end; that wind-down is reported apart."""
@@ -300,10 +302,17 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
                    f"failures {body['failures'] or 'none'}")
         click.echo(f"latency p50 {lat['p50']} s  p95 {lat['p95']} s  p99 {lat['p99']} s")
         click.echo(f"invocations per minute {body['invocations_per_minute']}")
-        for what in ("rss_mb", "fds"):
+        for what in ("rss_mb", "fds", "sessions", "queued_mb"):
             for role, series in body[what].items():
                 click.echo(f"{what} {role}: {series}")
-        click.echo(f"flat: {body['flat']}")
+        click.echo(f"flat: {body['flat']}  ({body['flat_by_series']})")
+        after = body["after_clients_left"]
+        click.echo(f"after the clients left: {'idle' if after['idle'] else 'NOT idle'} "
+                   f"within {after['seconds']} s  garbler {after['garbler']}  "
+                   f"evaluator {after['evaluator']}")
+        for role, log in body["daemon_logs"].items():
+            click.echo(f"{role} log: sessions {log['sessions']}  warnings "
+                       f"{log['warnings'] or 'none'}")
     if not body["ok"]:
         sys.exit(1)
 

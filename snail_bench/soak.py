@@ -44,6 +44,7 @@ ALGORITHMS = ("lm", "gn")
 EXPLAINED = (BUSY,)  # a server at its session limit, still busy after the client's wait
 FLAT_TOLERANCE = 0.10  # last minute within this fraction of the second
 SAMPLE_S = 2.0
+IDLE_LIMIT_S = 40.0  # beyond the daemons' 30 s session timeout
 EXAMPLES_KEPT = 5  # wrong results and failure messages quoted in the report
 COMPARED = ("rvec", "tvec", "cost", "iterations", "status")
 
@@ -65,6 +66,20 @@ class Plan:
         return max(1, math.ceil(self.minutes - 1e-9))
 
 
+@dataclass(frozen=True)
+class Sample:
+    """One look at a daemon: its footprint from /proc and, from its health message, the
+    sessions under way and the garbled-table bytes it buffers ahead of labels (None when
+    the health request failed)."""
+
+    t: float
+    role: str
+    rss_mb: float
+    fds: int
+    sessions: int | None = None
+    queued_mb: float | None = None
+
+
 @dataclass
 class Tally:
     """Everything the clients and the sampler reported, with times since the start."""
@@ -74,7 +89,7 @@ class Tally:
     wrong: list[dict] = field(default_factory=list)
     failures: Counter = field(default_factory=Counter)
     failure_examples: list[str] = field(default_factory=list)
-    samples: list[tuple[float, str, float, int]] = field(default_factory=list)  # t, role, MB, fds
+    samples: list[Sample] = field(default_factory=list)
 
 
 # ---- arithmetic over samples (pure: unit-tested) ----------------------------------------
@@ -243,16 +258,39 @@ def daemon_log(path: Path) -> dict:
     return {"sessions": dict(sessions), "warnings": dict(troubles)}
 
 
-def _sampler(pids: dict[str, int], start: float, every: float, tally: Tally,
-             stop: threading.Event) -> None:
+def _health(monitor: SecureRunner, role: str) -> tuple[int | None, float | None]:
+    """(sessions under way, MB buffered ahead) from a daemon's health message."""
+    try:
+        sessions = monitor.health(role)["sessions"]
+    except ServiceError:
+        return None, None
+    return int(sessions["active"]), round(sessions["queued_bytes"] / 2**20, 1)
+
+
+def _sampler(pids: dict[str, int], monitor: SecureRunner, start: float, every: float,
+             tally: Tally, stop: threading.Event) -> None:
     while True:
         now = time.monotonic() - start
         for role, pid in pids.items():
             seen = footprint(pid)
             if seen is not None:
-                tally.samples.append((now, role, *seen))
+                tally.samples.append(Sample(now, role, *seen, *_health(monitor, role)))
         if stop.wait(every):
             return
+
+
+def _until_idle(monitor: SecureRunner, limit: float) -> dict:
+    """Once every client is gone: wait (up to ``limit`` seconds) until no session is under
+    way and nothing is buffered, and report each daemon's state then. A session still
+    held after its clients left would be a leak."""
+    t0 = time.monotonic()
+    while True:
+        state = {role: dict(zip(("sessions", "queued_mb"), _health(monitor, role)))
+                 for role in ROLES}
+        idle = all(v["sessions"] == 0 and v["queued_mb"] == 0 for v in state.values())
+        if idle or time.monotonic() - t0 > limit:
+            return {"idle": idle, "seconds": round(time.monotonic() - t0, 1), **state}
+        time.sleep(0.5)
 
 
 # ---- the run ----------------------------------------------------------------------------
@@ -295,35 +333,48 @@ def run_soak(plan: Plan, quiet: bool = True) -> dict:
     with embedded_services(log_level="info") as services:
         tls_dir = str(services.tls_dir)
         garbler, evaluator = services.garbler_addr, services.evaluator_addr
-        names = [f"soak-{i:03d}" for i in range(plan.clients)]
-        for name in names:
+        for name in (*(f"soak-{i:03d}" for i in range(plan.clients)), "soak-monitor"):
             add_client(tls_dir, name)
         _warm_up(garbler, evaluator, tls_dir, plan)
         pids = {d.role: d.process.pid for d in (services.garbler, services.evaluator)}
-        start = time.monotonic()
-        stop = threading.Event()
-        sampler = threading.Thread(target=_sampler, args=(pids, start, plan.sample_s,
-                                                          tally, stop), daemon=True)
-        sampler.start()
-        procs = [ctx.Process(target=client_main, args=(
-            ClientJob(i, garbler, evaluator, tls_dir, name, plan, start), out), daemon=True)
-            for i, name in enumerate(names)]
+        monitor = SecureRunner(garbler, evaluator, tls_dir, cert_name="soak-monitor")
         try:
-            for proc in procs:
-                proc.start()
-            _collect(procs, out, tally, plan, start, quiet)
+            elapsed = _fleet(plan, ctx, out, pids, monitor, tally, quiet,
+                             ClientJob(0, garbler, evaluator, tls_dir, "", plan, 0.0))
+            after = _until_idle(monitor, IDLE_LIMIT_S)
         finally:
-            stop.set()
-            sampler.join()
-            for proc in procs:
-                if proc.is_alive():
-                    proc.terminate()
-                proc.join(10)
-        elapsed = time.monotonic() - start
+            monitor.close()
         logs = {d.role: daemon_log(d.log) for d in (services.garbler, services.evaluator)}
     report = summarize(tally, plan, elapsed)
     report["soak"]["daemon_logs"] = logs
+    report["soak"]["after_clients_left"] = after
     return report
+
+
+def _fleet(plan: Plan, ctx, out: mp.Queue, pids: dict[str, int], monitor: SecureRunner,
+           tally: Tally, quiet: bool, template: ClientJob) -> float:
+    """Start the sampler and the client processes, take their reports until all are
+    done; returns the seconds from the start to the last client's end."""
+    start = time.monotonic()
+    stop = threading.Event()
+    sampler = threading.Thread(target=_sampler, args=(
+        pids, monitor, start, plan.sample_s, tally, stop), daemon=True)
+    sampler.start()
+    procs = [ctx.Process(target=client_main, daemon=True, args=(dataclasses.replace(
+        template, index=i, cert_name=f"soak-{i:03d}", start=start), out))
+        for i in range(plan.clients)]
+    try:
+        for proc in procs:
+            proc.start()
+        _collect(procs, out, tally, plan, start, quiet)
+        return time.monotonic() - start
+    finally:
+        stop.set()
+        sampler.join()
+        for proc in procs:
+            if proc.is_alive():
+                proc.terminate()
+            proc.join(10)
 
 
 def _collect(procs: list, out: mp.Queue, tally: Tally, plan: Plan, start: float,
@@ -359,11 +410,14 @@ def summarize(tally: Tally, plan: Plan, elapsed: float) -> dict:
     buckets, window = plan.buckets, plan.minutes * 60
     inside = [(t, latency) for t, latency in tally.invocations if t < window]
     per_minute = bucket(inside, buckets)
-    within = [sample for sample in tally.samples if sample[0] < window]
-    rss = {role: per_minute_max([(t, mb) for t, r, mb, _ in within if r == role], buckets)
-           for role in ROLES}
-    fds = {role: per_minute_max([(t, n) for t, r, _, n in within if r == role], buckets)
-           for role in ROLES}
+    within = [sample for sample in tally.samples if sample.t < window]
+
+    def series(what: str) -> dict[str, list]:
+        return {role: per_minute_max([(x.t, getattr(x, what)) for x in within
+                                      if x.role == role and getattr(x, what) is not None],
+                                     buckets) for role in ROLES}
+
+    rss, fds = series("rss_mb"), series("fds")
     verdicts = {f"{what}/{role}": flat(series[role])
                 for what, series in (("rss_mb", rss), ("fds", fds)) for role in ROLES}
     overall = None if None in verdicts.values() else all(verdicts.values())
@@ -384,8 +438,10 @@ def summarize(tally: Tally, plan: Plan, elapsed: float) -> dict:
         "latency_per_minute_s": {p: [row[p] for row in minute_latency]
                                  for p in ("p50", "p95", "p99")},
         "flat": overall, "flat_by_series": verdicts,
-        "samples": {role: [[round(t, 1), mb, n] for t, r, mb, n in tally.samples
-                           if r == role] for role in ROLES},  # [t_s, rss_mb, fds]
+        "sessions": series("sessions"), "queued_mb": series("queued_mb"),
+        "samples": {role: [[round(x.t, 1), x.rss_mb, x.fds, x.sessions, x.queued_mb]
+                           for x in tally.samples if x.role == role]
+                    for role in ROLES},  # [t_s, rss_mb, fds, sessions, queued_mb]
         "wrong_examples": tally.wrong[:EXAMPLES_KEPT],
         "failure_examples": tally.failure_examples[:EXAMPLES_KEPT],
         "ok": not tally.wrong and unexplained == 0,

@@ -15,6 +15,7 @@ import pytest
 
 from snail_bench.soak import (
     Plan,
+    Sample,
     Tally,
     bucket,
     check_frame,
@@ -58,6 +59,12 @@ def test_short_soak_reports_checked_frames_and_the_daemons_footprint(tmp_path):
     assert all(series[0] >= 3 for series in body["fds"].values())
     assert body["flat"] is None  # one minute: nothing to compare
     assert len(body["samples"]["garbler"]) >= 10  # about one a second for ~18 s
+    assert max(row[3] for row in body["samples"]["evaluator"]) >= 1  # sessions under way
+    after = body["after_clients_left"]  # every session freed once the clients left
+    assert after["idle"] and after["garbler"] == after["evaluator"] \
+        == {"sessions": 0, "queued_mb": 0.0}
+    logs = body["daemon_logs"]
+    assert logs["garbler"]["sessions"]["ok"] >= body["invocations"]
 
 
 def test_a_frame_that_differs_from_cleartext_is_wrong():
@@ -104,8 +111,10 @@ def test_flat_compares_the_last_minute_with_the_second(series, expected):
 def _tally(failures: Counter, wrong: int = 0) -> Tally:
     samples = []
     for t in range(0, 250, 2):  # samples after the end (t >= 240) are wind-down
-        samples += [(float(t), "garbler", 200.0 + (t >= 180) * 30 + (t >= 240) * 700, 40),
-                    (float(t), "evaluator", 300.0, 40 + (t >= 180))]
+        samples += [Sample(t, "garbler", 200.0 + (t >= 180) * 30 + (t >= 240) * 700, 40,
+                           3, 0.0),
+                    Sample(t, "evaluator", 300.0, 40 + (t >= 180), None if t < 60 else 5,
+                           12.5 * (t // 60))]
     invocations = [(t * 1.5, 0.5 + t / 100) for t in range(100)] + [(241.0, 99.0)] * 7
     return Tally(invocations=invocations, frames=5,
                  wrong=[{"seed": 1}] * wrong, failures=failures, samples=samples)
@@ -117,6 +126,9 @@ def test_summary_shape_verdicts_and_what_counts_against_the_run():
     assert body["wind_down"] == {"seconds": 5.0, "invocations": 7}  # not in the minutes
     assert body["rss_mb"]["garbler"] == [200.0, 200.0, 200.0, 230.0]
     assert body["fds"]["evaluator"] == [40, 40, 40, 41]
+    assert body["sessions"] == {"garbler": [3, 3, 3, 3], "evaluator": [None, 5, 5, 5]}
+    assert body["queued_mb"]["evaluator"] == [0.0, 12.5, 25.0, 37.5]
+    assert body["samples"]["evaluator"][40] == [80, 300.0, 40, 5, 12.5]
     assert body["flat_by_series"] == {"rss_mb/garbler": False, "rss_mb/evaluator": True,
                                       "fds/garbler": True, "fds/evaluator": True}
     assert body["flat"] is False and body["ok"]  # a leak is reported; exit by results only
