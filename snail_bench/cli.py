@@ -247,8 +247,8 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
 @click.option("--sample-seconds", type=click.FloatRange(0.1, 60), default=2.0,
               show_default=True, help="How often the daemons' RSS and open fds are read.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path),
-              help="Write soak.json and soak.png (curves over time; needs the bench "
-                   "extra) into DIR.")
+              help="Write soak.json, soak.png (curves over time; needs the bench "
+                   "extra) and the daemons' logs (garbler.log, evaluator.log) into DIR.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tuple[str, ...],
          min_invocations: int, sample_seconds: float, out: Path | None,
@@ -279,7 +279,7 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
     from snail_client.secure import ServiceError
 
     try:
-        report = run_soak(plan, flags.get("quiet", False))
+        report = run_soak(plan, flags.get("quiet", False), out)
     except ServiceError as e:
         click.echo(f"snail-bench: {e}", err=True)
         sys.exit(1)

@@ -25,6 +25,7 @@ import multiprocessing as mp
 import os
 import queue
 import secrets
+import shutil
 import threading
 import time
 from collections import Counter
@@ -325,8 +326,9 @@ def _absorb(message: tuple, tally: Tally, plan: Plan) -> None:
             tally.failure_examples.append(message[3])
 
 
-def run_soak(plan: Plan, quiet: bool = True) -> dict:
-    """Run the soak and return its ``{"soak": {...}}`` report (see ``summarize``)."""
+def run_soak(plan: Plan, quiet: bool = True, keep_logs: Path | None = None) -> dict:
+    """Run the soak and return its ``{"soak": {...}}`` report (see ``summarize``); with
+    ``keep_logs``, the daemons' JSON logs are copied there (ROLE.log) for a post-mortem."""
     tally = Tally()
     ctx = mp.get_context("spawn")  # fresh interpreters: nothing shared with this one
     out: mp.Queue = ctx.Queue()
@@ -345,6 +347,10 @@ def run_soak(plan: Plan, quiet: bool = True) -> dict:
         finally:
             monitor.close()
         logs = {d.role: daemon_log(d.log) for d in (services.garbler, services.evaluator)}
+        if keep_logs is not None:
+            keep_logs.mkdir(parents=True, exist_ok=True)
+            for d in (services.garbler, services.evaluator):
+                shutil.copyfile(d.log, keep_logs / f"{d.role}.log")
     report = summarize(tally, plan, elapsed)
     report["soak"]["daemon_logs"] = logs
     report["soak"]["after_clients_left"] = after
