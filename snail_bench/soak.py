@@ -280,16 +280,18 @@ def _sampler(pids: dict[str, int], monitor: SecureRunner, start: float, every: f
             return
 
 
-def _until_idle(monitor: SecureRunner, limit: float) -> dict:
+def _until_idle(monitor: SecureRunner, pids: dict[str, int], limit: float) -> dict:
     """Once every client is gone: wait (up to ``limit`` seconds) until no session is under
-    way and nothing is buffered, and report each daemon's state then. A session still
-    held after its clients left would be a leak."""
+    way and nothing is buffered, and report each daemon's state then (with its RSS and
+    fds). A session still held after its clients left would be a leak."""
     t0 = time.monotonic()
     while True:
         state = {role: dict(zip(("sessions", "queued_mb"), _health(monitor, role)))
                  for role in ROLES}
         idle = all(v["sessions"] == 0 and v["queued_mb"] == 0 for v in state.values())
         if idle or time.monotonic() - t0 > limit:
+            for role, pid in pids.items():
+                state[role].update(zip(("rss_mb", "fds"), footprint(pid) or (None, None)))
             return {"idle": idle, "seconds": round(time.monotonic() - t0, 1), **state}
         time.sleep(0.5)
 
@@ -343,7 +345,7 @@ def run_soak(plan: Plan, quiet: bool = True, keep_logs: Path | None = None) -> d
         try:
             elapsed = _fleet(plan, ctx, out, pids, monitor, tally, quiet,
                              ClientJob(0, garbler, evaluator, tls_dir, "", plan, 0.0))
-            after = _until_idle(monitor, IDLE_LIMIT_S)
+            after = _until_idle(monitor, pids, IDLE_LIMIT_S)
         finally:
             monitor.close()
         logs = {d.role: daemon_log(d.log) for d in (services.garbler, services.evaluator)}
