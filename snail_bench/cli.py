@@ -240,6 +240,93 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
                        f"slowest client's median {worst:.3f} s")
 
 
+@main.command()
+@click.option("--clients", type=click.IntRange(1, 256), default=16, show_default=True,
+              help="Client processes, each with its own certificate and connections.")
+@click.option("--minutes", type=click.FloatRange(0.05, 10_000), default=10.0,
+              show_default=True, help="How long clients start new frames (fractions "
+                                      "allowed: 0.25 is 15 s).")
+@click.option("--points", type=click.IntRange(4, 4096), multiple=True, metavar="N",
+              help="Scene sizes the clients pick from at random; repeat for several "
+                   "(default: 6 and 12).")
+@click.option("--algorithm", "algorithms", type=click.Choice(["lm", "gn"]), multiple=True,
+              help="Algorithms the clients pick from at random (default: lm and gn).")
+@click.option("--min-invocations", type=click.IntRange(0, 1000), default=20,
+              show_default=True, help="Secure runs per frame, padding included (the "
+                                      "privacy policy's floor).")
+@click.option("--sample-seconds", type=click.FloatRange(0.1, 60), default=2.0,
+              show_default=True, help="How often the daemons' RSS and open fds are read.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path),
+              help="Write soak.json, soak.png (curves over time; needs the bench "
+                   "extra) and the daemons' logs (garbler.log, evaluator.log) into DIR.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tuple[str, ...],
+         min_invocations: int, sample_seconds: float, out: Path | None,
+         as_json: bool) -> None:
+    """A fleet of client processes localizing random scenes (mixed sizes and algorithms)
+    against one daemon pair on loopback for --minutes; every frame's pose is checked bit
+    for bit against the cleartext backend on the same scene. Reports invocations, failures
+    by kind, latency percentiles (overall and per minute), and each daemon's RSS, open
+    fds, sessions and tables buffered ahead per minute (largest sample), whether both
+    daemons are idle once the clients left, and their logs' session outcomes. Verdict:
+    flat when, for each daemon, the last minute's RSS and fds are within 10 % of the
+    second minute's (null under 3 minutes).
+    Exit 1 on any wrong result or any failure other than busy (a server at its session
+    limit beyond the client's busy wait), else 0. Clients finish the frame under way at
+    the end; that wind-down is reported apart."""
+    from .soak import Plan, run_soak
+
+    plan = Plan(clients, minutes, points or SERVICE_POINTS, algorithms or ("lm", "gn"),
+                min_invocations, sample_seconds)
+    if out is not None:
+        try:
+            from .soak_plot import plot_soak
+        except ImportError as e:
+            click.echo(f"snail-bench: --out needs the bench extra ({e}): "
+                       "pip install 'snail[bench]'", err=True)
+            sys.exit(2)
+    flags = click.get_current_context().find_object(dict) or {}
+    from snail_client.secure import ServiceError
+
+    try:
+        report = run_soak(plan, flags.get("quiet", False), out)
+    except ServiceError as e:
+        click.echo(f"snail-bench: {e}", err=True)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        click.echo("snail-bench: interrupted", err=True)
+        sys.exit(130)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "soak.json").write_text(json.dumps(report, indent=1) + "\n")
+        plot_soak(report["soak"], out / "soak.png")
+    body = report["soak"]
+    if as_json:
+        click.echo(json.dumps(report))
+    else:
+        lat = body["latency_s"]
+        click.echo(f"{body['clients']} clients, {body['minutes'] * 60:.0f} s: "
+                   f"{body['invocations']} invocations (and "
+                   f"{body['wind_down']['invocations']} in the {body['wind_down']['seconds']:.0f}"
+                   f" s wind-down), {body['frames']} frames checked, {body['wrong']} wrong, "
+                   f"failures {body['failures'] or 'none'}")
+        click.echo(f"latency p50 {lat['p50']} s  p95 {lat['p95']} s  p99 {lat['p99']} s")
+        click.echo(f"invocations per minute {body['invocations_per_minute']}")
+        for what in ("rss_mb", "fds", "sessions", "queued_mb"):
+            for role, series in body[what].items():
+                click.echo(f"{what} {role}: {series}")
+        click.echo(f"flat: {body['flat']}  ({body['flat_by_series']})")
+        after = body["after_clients_left"]
+        click.echo(f"after the clients left: {'idle' if after['idle'] else 'NOT idle'} "
+                   f"within {after['seconds']} s  garbler {after['garbler']}  "
+                   f"evaluator {after['evaluator']}")
+        for role, log in body["daemon_logs"].items():
+            click.echo(f"{role} log: sessions {log['sessions']}  warnings "
+                       f"{log['warnings'] or 'none'}")
+    if not body["ok"]:
+        sys.exit(1)
+
+
 @main.command("fuzz")
 @click.option("--target", "targets", multiple=True, metavar="NAME",
               help="A parser to fuzz (repeatable; default: all of them: frames, message, "

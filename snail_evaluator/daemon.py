@@ -329,7 +329,10 @@ class EvaluatorDaemon(Daemon):
             raise
         if s.failure is not None:  # cancelled while the last frame was evaluated
             raise ProtocolError(s.failure.code, s.failure.message)
-        s.bytes_out += conn.write(messages.make("done", sid=sid))
+        # the garbler may have stopped waiting for this (it times out, or went): the
+        # result is still the client's, and the session must end either way
+        with contextlib.suppress(ConnectionClosed):
+            s.bytes_out += conn.write(messages.make("done", sid=sid))
         try:
             s.bytes_out += write_labels(s.client, "output_labels", sid, outputs)
             s.bytes_out += s.client.write(messages.make(
