@@ -1,0 +1,11 @@
+"""Oblivious transfer for the map-owner setting: base OTs over a vetted prime-order group
+(libsodium through PyNaCl) and IKNP extension with AES, as transport-agnostic state
+machines that produce and consume msgpack-able dicts (see ``iknp`` for the flow and its
+semi-honest caveat). A malformed or out-of-bounds message raises a ProtocolError that
+names the field.
+"""
+
+from .base import BaseReceiver, BaseSender
+from .iknp import MAX_BATCH, ExtReceiver, ExtSender
+
+__all__ = ["MAX_BATCH", "BaseReceiver", "BaseSender", "ExtReceiver", "ExtSender"]
