@@ -6,12 +6,25 @@ from __future__ import annotations
 
 import random
 
+import msgpack
 import nacl.bindings as sodium
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from shared_paths import BRISTOL
 
+from snail_common.circuit import evaluate_bits, schedule_circuit
+from snail_common.circuit.bristol import load_bristol
+from snail_common.gc import (
+    Garbler,
+    active_input_labels,
+    decode_output_labels,
+    derive_zero_labels,
+    evaluate_stream,
+    fresh_delta,
+    fresh_seed,
+)
 from snail_common.net.errors import ProtocolError
 from snail_common.ot import BaseReceiver, BaseSender, ExtReceiver, ExtSender
 from snail_common.ot.blocks import transpose
@@ -145,6 +158,37 @@ def test_same_choices_in_two_batches_give_unrelated_transcripts():
     assert u1["u"] != u2["u"]
     assert not set(np.frombuffer(u1["u"], U64)) & set(np.frombuffer(u2["u"], U64))
     assert len(set(np.frombuffer(y2["y"], U64))) > 1000
+
+
+def wire_trip(msg: dict) -> dict:
+    """A message as it arrives after msgpack (what the daemons' frames carry)."""
+    return msgpack.unpackb(msgpack.packb(msg), raw=False)
+
+
+def test_map_owner_input_by_ot_garbles_to_the_cleartext_result():
+    """FP-mul with the device's operand from its seed and D and the map owner's operand
+    through OT from the garbler (sender: (L0, L0 ^ D) per wire; receiver: the map owner's
+    bits), every OT message through msgpack: the decoded output equals cleartext."""
+    schedule = schedule_circuit(load_bristol(BRISTOL / "FP-mul.txt"))
+    device = np.frombuffer(np.array([3.25]).tobytes(), np.uint8)
+    owner = np.frombuffer(np.array([-7.5e2]).tobytes(), np.uint8)
+    bits = np.unpackbits(np.concatenate([device, owner]), bitorder="little").astype(bool)
+    seed, delta = fresh_seed(), fresh_delta()
+    garbler = Garbler(schedule, seed, delta)
+    owner_slots = slice(2 + 64, 2 + 128)  # slots 0 and 1 are the constants
+
+    map_owner, garbler_ot = ExtReceiver(), ExtSender()
+    map_owner.base_done(wire_trip(garbler_ot.base_reply(wire_trip(map_owner.start()))))
+    request = wire_trip(map_owner.request(bits[64:]))
+    zero = derive_zero_labels(seed, schedule.n_inputs + 2)[owner_slots]
+    owner_labels = map_owner.receive(wire_trip(garbler_ot.respond_chosen(request, zero,
+                                                                         zero ^ delta)))
+    labels = active_input_labels(seed, delta, np.r_[bits[:64], np.zeros(64, bool)])
+    labels[owner_slots] = owner_labels  # what the map owner sends the evaluator
+    active = evaluate_stream(schedule, labels, garbler.frames())
+    out = decode_output_labels(delta, garbler.output_zero_labels, active)
+    assert np.array_equal(out, evaluate_bits(schedule, bits).reshape(-1))
+    assert np.packbits(out, bitorder="little").view(np.float64)[0] == 3.25 * -7.5e2
 
 
 # --- what each side sees ---------------------------------------------------------------
