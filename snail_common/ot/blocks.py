@@ -9,7 +9,6 @@ import numpy as np
 from cryptography.hazmat.primitives.ciphers import Cipher, algorithms, modes
 
 from ..gc.aes import BLOCK_BYTES, AesBatch, byte_view
-from ..gc.halfgates import sigma
 
 KAPPA = 128  # base OTs, and bits per block
 U64 = np.uint64
@@ -59,22 +58,28 @@ def transpose(rows: np.ndarray) -> np.ndarray:
 
 
 class CorrelationRobustHash:
-    """H(j, x) = AES_k(sigma(x) ^ j) ^ sigma(x), the tweakable correlation-robust hash of
-    Guo-Katz-Wang-Yu (2020) that the half-gates engine uses too, with the OT index j as the
+    """H(j, x) = AES_k(sigma(x) ^ j) ^ sigma(x) with sigma(x0, x1) = (x0 ^ x1, x0), the
+    tweakable correlation-robust hash of Guo-Katz-Wang-Yu (2020) that the half-gates engine
+    (``gc/halfgates.py``) uses too, with the OT index j as the
     tweak (in word 1) and a fixed public key k agreed per OT session."""
 
     def __init__(self, key: bytes) -> None:
         self._aes = AesBatch(key)
 
-    def __call__(self, x: np.ndarray, start: int) -> np.ndarray:
-        """H(start + r, x[r]) for every row r of the (m, 2) uint64 array ``x``."""
+    def __call__(self, x: np.ndarray, start: int | np.ndarray) -> np.ndarray:
+        """H(start + r, x[r]) for every row r of the (m, 2) uint64 array ``x``; or, when
+        ``start`` is an array, H(start[r], x[r])."""
         m = len(x)
-        inp = sigma(x)
-        inp[:, 1] ^= np.arange(start, start + m, dtype=np.uint64)
-        out = np.empty((m + 1, 2), dtype=np.uint64)  # OpenSSL's update wants a spare block
+        sig = np.empty((m, 2), dtype=U64)  # sigma(x), written in place (no stack copies)
+        np.bitwise_xor(x[:, 0], x[:, 1], out=sig[:, 0])
+        sig[:, 1] = x[:, 0]
+        inp = sig.copy()
+        inp[:, 1] ^= (np.arange(start, start + m, dtype=U64) if np.ndim(start) == 0
+                      else np.asarray(start, dtype=U64))
+        out = np.empty((m + 1, 2), dtype=U64)  # OpenSSL's update wants a spare block
         self._aes.encrypt_into(byte_view(inp), byte_view(out))
         out = out[:m]
-        out ^= sigma(x)
+        out ^= sig
         return out
 
 

@@ -5,6 +5,7 @@ The extension receiver R (choice bits r, m of them) is the base-OT *sender*; the
 sender S (messages) is the base-OT *receiver*, with 128 random choice bits s.
   R: t^i = G(k_i^0), u^i = t^i ^ G(k_i^1) ^ r                        (rows, m bits each)
   S: q^i = G(k_i^{s_i}) ^ s_i u^i = t^i ^ s_i r;  as columns q_j = t_j ^ r_j s
+  random:     S's keys are H(j, q_j) and H(j, q_j ^ s); R's is H(j, t_j); nothing is sent
   chosen:     S sends y_j^b = x_j^b ^ H(j, q_j ^ b s);  R takes x_j^{r_j} = y_j^{r_j} ^ H(j, t_j)
   correlated: S's x_j^0 = H(j, q_j), x_j^1 = x_j^0 ^ Delta; it sends
               w_j = H(j, q_j) ^ H(j, q_j ^ s) ^ Delta;  R takes H(j, t_j) ^ r_j w_j
@@ -23,7 +24,7 @@ Messages (dicts of bytes and ints, msgpack-able; the daemons carry them in their
   R -> S  ``ot_base_a`` {a}                      (base OT, once per session)
   S -> R  ``ot_base_b`` {b}
   R -> S  ``ot_ext_u``  {start, m, u}            (per batch)
-  S -> R  ``ot_ext_y``  {start, y} or ``ot_ext_c`` {start, w}
+  S -> R  ``ot_ext_y``  {start, y} or ``ot_ext_c`` {start, w} (nothing for random OT)
 """
 
 from __future__ import annotations
@@ -123,6 +124,15 @@ class ExtReceiver:
         self._pending = None
         return out
 
+    def receive_random(self) -> tuple[int, np.ndarray]:
+        """Random OT: (start, H(j, t_j)) for the batch in flight, the key the sender's
+        ``respond_random`` gives for each choice; no answer message is needed."""
+        if self._pending is None:
+            raise RuntimeError("receive_random() needs a batch in flight")
+        start, _, t = self._pending
+        self._pending = None
+        return start, self._crh(t, start)
+
 
 class ExtSender:
     """The party with the messages. ``base_reply(a)`` -> ``ot_base_b``, then per batch
@@ -174,6 +184,13 @@ class ExtSender:
         q = self._q(start, m, u)
         y = np.stack([x0 ^ self._crh(q, start), x1 ^ self._crh(q ^ self._s, start)], axis=1)
         return {"t": "ot_ext_y", "start": start, "y": y.tobytes()}
+
+    def respond_random(self, msg: object) -> tuple[int, np.ndarray, np.ndarray]:
+        """Random OT: (start, k0, k1), both (m, 2) uint64; the receiver holds k_{r_j}[j]
+        and nothing about the other key. Sends nothing."""
+        start, m, u = self._request(msg)
+        q = self._q(start, m, u)
+        return start, self._crh(q, start), self._crh(q ^ self._s, start)
 
     def respond_correlated(self, msg: object, delta: object) -> tuple[dict, np.ndarray]:
         """(``ot_ext_c``, x0): the receiver gets x0[j] ^ r_j Delta; x0 comes out of the OT
