@@ -78,8 +78,9 @@ def test_bad_tables_and_requests_are_named_errors():
     with pytest.raises(ProtocolError, match="no selection requested"):
         device.receive({"t": "sel_table", "start": 0, "key": bytes(16), "table": b""})
     request = device.request(np.array([1, 2]))
-    for bad, field in (({**request, "m": 5}, "'m'"), ({**request, "m": "6"}, "'m'"),
-                       ({**request, "u": b""}, "'u'"), ("nope", "map")):
+    for bad, field in (({**request, "m": 5}, "'m'"), ({**request, "m": 3 * 4097}, "'m'"),
+                       ({**request, "m": "6"}, "'m'"), ({**request, "u": b""}, "'u'"),
+                       ("nope", "map")):
         with pytest.raises(ProtocolError, match=field):
             owner.respond(bad, values(rng, 2))
     table = owner.respond(request, values(rng, 2))

@@ -69,6 +69,7 @@ class SelectReceiver:
         self._pending: tuple[np.ndarray, int, np.ndarray] | None = None
 
     def request(self, indices: np.ndarray) -> dict:
+        """``ot_ext_u`` for one query per index (the index bits are the OT choices)."""
         idx = np.asarray(indices)
         if idx.ndim != 1 or not len(idx) or idx.dtype.kind not in "iu" or (
                 (idx < 0) | (idx >= self._n_values)).any():
@@ -83,6 +84,7 @@ class SelectReceiver:
         return msg
 
     def receive(self, msg: object) -> np.ndarray:
+        """v[idx_i] ^ P_i from the map owner's ``sel_table``."""
         if self._pending is None:
             raise ProtocolError(UNEXPECTED, "'sel_table' with no selection requested")
         idx, start, keys = self._pending
@@ -100,8 +102,9 @@ class SelectReceiver:
 
 
 class SelectSender:
-    """The map owner: ``respond(u, values, pads)`` -> ``sel_table``. Runs on an ExtSender
-    whose base OTs are done; ``values`` (N, width) and ``pads`` (n, width) are uint8."""
+    """The map owner, holding ``values`` (N, width) uint8: ``respond(u, pads)`` ->
+    ``sel_table`` with fresh ``pads`` (n, width) uint8, one per query. Runs on an ExtSender
+    whose base OTs are done."""
 
     def __init__(self, ot: ExtSender, values: np.ndarray, max_queries: int = 4096) -> None:
         self._ot = ot
@@ -110,12 +113,12 @@ class SelectSender:
         self._max_queries = max_queries
 
     def respond(self, msg: object, pads: np.ndarray) -> dict:
+        """The table for the device's ``ot_ext_u``: every value under every query's pad."""
         n_values, width = self._values.shape
-        if not isinstance(msg, dict) or type(msg.get("m")) is not int:
-            self._ot.respond_random(msg)  # raises the ProtocolError that names the field
-        m = msg["m"]
+        body = wire.fields(msg, "ot_ext_u", ("start", "m", "u"))
+        m = wire.integer(body, "m", 1, self._max_queries * self._l)
         n, rest = divmod(m, self._l)
-        if rest or not 1 <= n <= self._max_queries or n * n_values * width > MAX_TABLE_BYTES:
+        if rest or n * n_values * width > MAX_TABLE_BYTES:
             raise ProtocolError(BAD_REQUEST, f"field 'm': {m} OTs are not 1 to "
                                              f"{self._max_queries} queries of {self._l} "
                                              f"into {n_values} values")
