@@ -8,7 +8,7 @@ names the field.
 
 from .base import BaseReceiver, BaseSender
 from .iknp import MAX_BATCH, ExtReceiver, ExtSender
-from .select import SelectReceiver, SelectSender
+from .selection import SelectReceiver, SelectSender
 
 __all__ = ["MAX_BATCH", "BaseReceiver", "BaseSender", "ExtReceiver", "ExtSender",
            "SelectReceiver", "SelectSender"]

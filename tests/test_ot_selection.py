@@ -1,4 +1,4 @@
-"""Oblivious selection (snail_common/ot/select.py): the device gets exactly v[idx_i] ^ P_i
+"""Oblivious selection (snail_common/ot/selection.py): the device gets exactly v[idx_i] ^ P_i
 per query, its keys open no other entry, and bad tables or requests are named errors."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 from snail_common.net.errors import ProtocolError
 from snail_common.ot import ExtReceiver, ExtSender
 from snail_common.ot.blocks import CorrelationRobustHash
-from snail_common.ot.select import SelectReceiver, SelectSender, index_bits
+from snail_common.ot.selection import SelectReceiver, SelectSender, index_bits
 
 
 def pair() -> tuple[ExtReceiver, ExtSender]:
