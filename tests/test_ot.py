@@ -4,6 +4,7 @@ in the ways the protocol's argument says; malformed messages are named errors.""
 
 from __future__ import annotations
 
+import contextlib
 import random
 
 import msgpack
@@ -384,5 +385,29 @@ def test_any_request_is_answered_or_refused_by_name():
             pass
         except ValueError as exc:  # a valid request for another number of OTs than supplied
             assert "x0" in str(exc)
+
+    run()
+
+
+def test_any_base_or_answer_message_is_accepted_or_refused_by_name():
+    """Random maps and bytes into every receiving step: a ProtocolError or success, never
+    another exception (the daemons answer the error by name and drop the session)."""
+    receiver, _, _ = session()
+    receiver.request(np.ones(16, dtype=int))
+    fresh_sender, fresh_receiver = ExtSender(), ExtReceiver()
+    fresh_receiver.start()
+    steps = [fresh_sender.base_reply, fresh_receiver.base_done, receiver.receive]
+
+    @settings(max_examples=300, deadline=None)
+    @given(step=st.sampled_from(steps), msg=st.one_of(
+        st.binary(max_size=64), st.none(), st.integers(),
+        st.dictionaries(st.sampled_from(["t", "a", "b", "start", "w", "y"]),
+                        st.one_of(st.integers(-5, 1 << 70), st.binary(max_size=600),
+                                  st.sampled_from(["ot_base_a", "ot_base_b", "ot_ext_y",
+                                                   "ot_ext_c"]), st.none(), st.text()),
+                        max_size=4)))
+    def run(step, msg):
+        with contextlib.suppress(ProtocolError):
+            step(msg)
 
     run()
