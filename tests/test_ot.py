@@ -179,11 +179,17 @@ def test_map_owner_input_by_ot_garbles_to_the_cleartext_result():
     owner_slots = slice(2 + 64, 2 + 128)  # slots 0 and 1 are the constants
 
     map_owner, garbler_ot = ExtReceiver(), ExtSender()
-    map_owner.base_done(wire_trip(garbler_ot.base_reply(wire_trip(map_owner.start()))))
+    to_owner = [wire_trip(garbler_ot.base_reply(wire_trip(map_owner.start())))]
+    map_owner.base_done(to_owner[0])
     request = wire_trip(map_owner.request(bits[64:]))
     zero = derive_zero_labels(seed, schedule.n_inputs + 2)[owner_slots]
-    owner_labels = map_owner.receive(wire_trip(garbler_ot.respond_chosen(request, zero,
-                                                                         zero ^ delta)))
+    to_owner.append(wire_trip(garbler_ot.respond_chosen(request, zero, zero ^ delta)))
+    owner_labels = map_owner.receive(to_owner[1])
+    # nothing the map owner receives holds D or the seed, or a label it did not choose
+    unchosen = np.where(bits[64:, None], zero, zero ^ delta).tobytes()
+    for secret in [delta.tobytes(), seed] + [unchosen[i:i + 16] for i in range(0, 1024, 16)]:
+        assert not any(secret in value for msg in to_owner for value in msg.values()
+                       if isinstance(value, bytes))
     labels = active_input_labels(seed, delta, np.r_[bits[:64], np.zeros(64, bool)])
     labels[owner_slots] = owner_labels  # what the map owner sends the evaluator
     active = evaluate_stream(schedule, labels, garbler.frames())

@@ -61,6 +61,23 @@ def test_the_device_keys_open_no_other_entry():
     assert np.array_equal(device.receive(table_msg), v[idx] ^ pads)
 
 
+def test_no_value_is_in_the_table_in_the_clear():
+    """The table is all the device receives from the map owner: no entry is a 3D point,
+    and none is a padded point either (each is under a hash of keys)."""
+    rng = np.random.default_rng(5)
+    receiver, sender = pair()
+    n_values, n = 300, 8
+    v, pads = values(rng, n_values), values(rng, n)
+    device, owner = SelectReceiver(receiver, n_values, 12), SelectSender(sender, v)
+    idx = rng.integers(0, n_values, n)
+    table_msg = owner.respond(device.request(idx), pads)
+    entries = {bytes(e) for e in np.frombuffer(table_msg["table"], np.uint8).reshape(-1, 12)}
+    assert len(entries) == n * n_values
+    assert not entries & {bytes(row) for row in v}
+    assert not entries & {bytes(row) for row in (v[None] ^ pads[:, None]).reshape(-1, 12)}
+    assert np.array_equal(device.receive(table_msg), v[idx] ^ pads)
+
+
 def test_the_table_has_one_entry_per_value_and_query():
     receiver, sender = pair()
     device = SelectReceiver(receiver, 10_000, 12)
