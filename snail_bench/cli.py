@@ -144,13 +144,19 @@ def circuit(algorithm: str, mode: str, points: int, solve: str | None, solver: s
 
 
 @main.command()
+@click.option("--scheme", "schemes", type=click.Choice(["halfgates", "threehalves"]),
+              multiple=True, help="Garbling scheme to measure; repeat for several (default: "
+                                  "both, half-gates first). The first one's numbers are the "
+                                  "top-level fields; each scheme's are under 'schemes'.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def engine(as_json: bool) -> None:
+def engine(schemes: tuple[str, ...], as_json: bool) -> None:
     """Garbling engine: AES rate, garble/evaluate AND gates per second on wide steps,
-    per-step overhead on narrow ones, and a two-process loopback rate."""
-    from .engine import engine_report
+    per-step overhead on narrow ones, a two-process loopback rate, and the garbler ->
+    evaluator bytes per AND gate, per scheme (with both: bytes_ratio, three-halves over
+    half-gates)."""
+    from .engine import SCHEMES, engine_report
 
-    _emit(engine_report(), as_json)
+    _emit(engine_report(schemes=tuple(dict.fromkeys(schemes)) or SCHEMES), as_json)
 
 
 @main.command()
@@ -233,7 +239,8 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
 @main.command("fuzz")
 @click.option("--target", "targets", multiple=True, metavar="NAME",
               help="A parser to fuzz (repeatable; default: all of them: frames, message, "
-                   "problem, sequence, camera, tagmap, colmap_bin, colmap_txt, revoked).")
+                   "problem, sequence, camera, tagmap, colmap_bin, colmap_txt, revoked, "
+                   "certificates).")
 @click.option("--runs", type=click.IntRange(1), default=1_000_000, show_default=True,
               help="Inputs per target.")
 @click.option("--seconds", type=click.IntRange(1), default=3600, show_default=True,

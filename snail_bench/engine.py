@@ -9,7 +9,11 @@
 - plan: one-time preparation of a schedule for the engine (cached per schedule).
 Rates are the best of a few runs (the first pays for page faults and cold caches).
 - end to end: garbler and evaluator in two processes over loopback TCP, frame by frame, so
-  evaluation of frame k overlaps garbling of frame k+1; the result is decoded and checked.
+  evaluation of frame k overlaps garbling of frame k+1; the result is decoded and checked;
+- bytes per AND: the garbler -> evaluator stream of the wide circuit (header excluded).
+Each scheme asked for is measured on the same circuits; the first one's numbers are the
+report's top-level fields (with its ``scheme``), every scheme's are under ``schemes``, and
+with both, ``bytes_ratio`` is three-halves' stream over half-gates'.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from snail_common.gc import (
     fresh_seed,
 )
 from snail_common.gc.aes import AesBatch, byte_view
+from snail_common.gc.stream import HEADER
 
 WIDE_LANES = 1 << 15  # AND steps of 32 Ki and 64 Ki gates
 WIDE_LAYERS = 192  # 6.3 M AND gates
@@ -45,33 +50,57 @@ DEEP_LAYERS = 1500
 _LEN = struct.Struct("<I")
 
 
-def engine_report(wide_layers: int = WIDE_LAYERS, deep_layers: int = DEEP_LAYERS) -> dict:
-    """Measure AES, garble, evaluate, per-step overhead and end-to-end rates (one run)."""
+SCHEMES = ("halfgates", "threehalves")
+
+
+def engine_report(wide_layers: int = WIDE_LAYERS, deep_layers: int = DEEP_LAYERS,
+                  schemes: tuple[str, ...] = SCHEMES) -> dict:
+    """Measure AES, garble, evaluate, per-step overhead, end-to-end rates and stream bytes
+    per AND of each scheme (one run)."""
+    if not schemes or any(s not in SCHEMES for s in schemes):
+        raise ValueError(f"schemes must be some of {', '.join(SCHEMES)}, got {schemes}")
     load = os.getloadavg()[0]  # other work on the machine: context for every rate below
     wide = schedule_circuit(_layered_circuit(WIDE_LANES, wide_layers))
     deep = schedule_circuit(_layered_circuit(DEEP_LANES, deep_layers))
     t0 = time.perf_counter()
     plan_for(wide)
     plan_s = time.perf_counter() - t0
-    # best of a few runs: the first pays for page faults and cold caches
-    garble_s, evaluate_s = _best(_time_in_process(wide) for _ in range(2))
-    deep_garble_s, deep_evaluate_s = _best(_time_in_process(deep) for _ in range(3))
-    e2e_s = min(_time_two_processes(wide) for _ in range(2))
-    return {"engine": {
-        "aes_blocks_per_s": round(_aes_rate()),
-        "garble_and_per_s": round(wide.n_and / garble_s),
-        "evaluate_and_per_s": round(wide.n_and / evaluate_s),
-        "step_overhead_us": round(1e6 * max(deep_garble_s, deep_evaluate_s) / deep.n_steps, 2),
-        "end_to_end_and_per_s": round(wide.n_and / e2e_s),
-        "garble_step_us": round(1e6 * deep_garble_s / deep.n_steps, 2),
-        "evaluate_step_us": round(1e6 * deep_evaluate_s / deep.n_steps, 2),
+    per_scheme = {s: _scheme_report(wide, deep, s) for s in schemes}
+    report = {"scheme": schemes[0], "aes_blocks_per_s": round(_aes_rate()),
+              **per_scheme[schemes[0]]}
+    report.update({
         "plan_s": round(plan_s, 3),
         "wide_and": wide.n_and,
         "wide_steps": wide.n_steps,
         "deep_steps": deep.n_steps,
         "cpus": os.cpu_count(),
         "load_avg_1m": round(load, 2),
-    }}
+        "schemes": per_scheme,
+    })
+    if len(per_scheme) == len(SCHEMES):
+        report["bytes_ratio"] = round(per_scheme["threehalves"]["stream_bytes"]
+                                      / per_scheme["halfgates"]["stream_bytes"], 4)
+    return {"engine": report}
+
+
+def _scheme_report(wide: Schedule, deep: Schedule, scheme: str) -> dict:
+    """One scheme's rates on the wide and deep circuits, and its stream size."""
+    # best of a few runs: the first pays for page faults and cold caches
+    garble_s, evaluate_s = _best(_time_in_process(wide, scheme) for _ in range(2))
+    deep_garble_s, deep_evaluate_s = _best(_time_in_process(deep, scheme) for _ in range(3))
+    e2e_s = min(_time_two_processes(wide, scheme) for _ in range(2))
+    stream = sum(len(f) for f in Garbler(wide, fresh_seed(), fresh_delta(),
+                                         scheme=scheme).frames()) - HEADER.size
+    return {
+        "garble_and_per_s": round(wide.n_and / garble_s),
+        "evaluate_and_per_s": round(wide.n_and / evaluate_s),
+        "step_overhead_us": round(1e6 * max(deep_garble_s, deep_evaluate_s) / deep.n_steps, 2),
+        "end_to_end_and_per_s": round(wide.n_and / e2e_s),
+        "garble_step_us": round(1e6 * deep_garble_s / deep.n_steps, 2),
+        "evaluate_step_us": round(1e6 * deep_evaluate_s / deep.n_steps, 2),
+        "bytes_per_and": round(stream / wide.n_and, 3),
+        "stream_bytes": stream,
+    }
 
 
 def _best(runs) -> tuple[float, ...]:
@@ -116,7 +145,7 @@ def _cleartext(schedule: Schedule, bits: np.ndarray) -> np.ndarray:
     return unpack_lanes(run_schedule(schedule, pack_lanes(bits[:, None])), 1)[:, 0]
 
 
-def _time_in_process(schedule: Schedule) -> tuple[float, float]:
+def _time_in_process(schedule: Schedule, scheme: str) -> tuple[float, float]:
     """(garble seconds, evaluate seconds) in one process; checks the result.
 
     Garbling is timed as a stream (each frame dropped once taken, as a sender does), then
@@ -125,10 +154,10 @@ def _time_in_process(schedule: Schedule) -> tuple[float, float]:
     bits = _inputs(schedule)
     seed, delta, key = fresh_seed(), fresh_delta(), os.urandom(16)
     t0 = time.perf_counter()
-    for _ in Garbler(schedule, seed, delta, key).frames():
+    for _ in Garbler(schedule, seed, delta, key, scheme=scheme).frames():
         pass
     garble_s = time.perf_counter() - t0
-    garbler = Garbler(schedule, seed, delta, key)
+    garbler = Garbler(schedule, seed, delta, key, scheme=scheme)
     frames = list(garbler.frames())
     ev = Evaluator(schedule, active_input_labels(seed, delta, bits))
     t0 = time.perf_counter()
@@ -172,8 +201,8 @@ def _receiver(conn: socket.socket, frames: queue.Queue) -> None:
     frames.put(None)
 
 
-def _garbler_proc(schedule, seed, delta, port, results) -> None:
-    garbler = Garbler(schedule, seed, delta)
+def _garbler_proc(schedule, seed, delta, port, results, scheme) -> None:
+    garbler = Garbler(schedule, seed, delta, scheme=scheme)
     with socket.create_connection(("127.0.0.1", port)) as conn:
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         frames: queue.Queue = queue.Queue(maxsize=4)
@@ -202,7 +231,7 @@ def _evaluator_proc(schedule, labels, listener, results) -> None:
     results.put(("active", out))
 
 
-def _time_two_processes(schedule: Schedule) -> float:
+def _time_two_processes(schedule: Schedule, scheme: str) -> float:
     """Seconds from the garbler's first frame to the evaluator's last label, over TCP."""
     ctx = mp.get_context("fork")  # children share the schedule instead of pickling it
     bits = _inputs(schedule, 2)
@@ -212,7 +241,8 @@ def _time_two_processes(schedule: Schedule) -> float:
     results = ctx.Queue()
     procs = [ctx.Process(target=_evaluator_proc, args=(schedule, labels, listener, results)),
              ctx.Process(target=_garbler_proc,
-                         args=(schedule, seed, delta, listener.getsockname()[1], results))]
+                         args=(schedule, seed, delta, listener.getsockname()[1], results,
+                               scheme))]
     for p in procs:
         p.start()
     got = dict(results.get(timeout=600) for _ in range(4))

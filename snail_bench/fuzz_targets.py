@@ -24,7 +24,7 @@ from snail_common.loc.problem import ProblemError, load_problem, read_sequence
 from snail_common.net import messages
 from snail_common.net.errors import ProtocolError
 from snail_common.net.frames import FrameReader, decode, encode_bytes
-from snail_common.net.tls import TLSFileError, read_revoked
+from snail_common.net.tls import TLSFileError, add_client, client_context, make_certs, read_revoked
 
 Target = Callable[[bytes], None]
 _SCRATCH = Path(os.environ.get("SNAIL_FUZZ_DIR") or
@@ -120,13 +120,43 @@ def revoked(data: bytes) -> None:
     read_revoked(folder)
 
 
+_TLS_FILES = ("ca.pem", "client.pem", "client.key", "ca.key")
+
+
+def _tls_folder() -> Path:
+    """A valid TLS folder made once per process; each input works on a fresh copy of it."""
+    base = _scratch_dir() / "tls-valid"
+    if not base.is_dir():
+        make_certs(base)
+    work = _scratch_dir() / "tls"
+    work.mkdir(exist_ok=True)
+    for file in base.iterdir():
+        (work / file.name).write_bytes(file.read_bytes())
+    for extra in work.glob("robot.*"):
+        extra.unlink()
+    return work
+
+
+def certificates(data: bytes) -> None:
+    """A TLS folder whose CA, certificate or key file is ``data[1:]`` (``data[0]`` picks
+    which; a PEM seed is kept whole): loaded as a client's context and used to issue a
+    client certificate, as a device and ``snail-client certs --client`` do."""
+    folder = _tls_folder()
+    pick = data[0] if data else 0
+    (folder / _TLS_FILES[pick % len(_TLS_FILES)]).write_bytes(data[1:])
+    if pick & 4:
+        add_client(folder, "robot")
+    else:
+        client_context(folder, "client")
+
+
 # each parser with the errors it documents for bad input (TLSFileError is a ValueError)
 PARSERS: dict[str, tuple[Target, tuple[type[Exception], ...]]] = {
     "frames": (frames, (ProtocolError,)), "message": (message, (ProtocolError,)),
     "problem": (problem, (ProblemError,)), "sequence": (sequence, (ProblemError,)),
     "camera": (camera, (ProblemError,)), "tagmap": (tagmap, (ProblemError,)),
     "colmap_bin": (colmap_bin, (ProblemError,)), "colmap_txt": (colmap_txt, (ProblemError,)),
-    "revoked": (revoked, (TLSFileError,)),
+    "revoked": (revoked, (TLSFileError,)), "certificates": (certificates, (TLSFileError,)),
     "map": (map_file, (ProblemError,)), "frame": (frame_file, (ProblemError,)),
 }
 
@@ -171,6 +201,7 @@ def seeds(target: str) -> list[bytes]:
         "colmap_bin": [_colmap_bin_seed()],
         "colmap_txt": [_colmap_txt_seed()],
         "revoked": [b"# lost\nrobot7\n" + b"ab:" * 31 + b"cd\n"],
+        "certificates": _tls_seeds(),
         "map": [json.dumps({"format": "snail-map/1", "points": [
             {"id": 17, "xyz": [0, 0, 0]}, {"id": 4, "xyz": [1.5, 0, 0.25]},
             {"id": 90, "xyz": [1, 1, 0]}]}).encode()],
@@ -179,6 +210,14 @@ def seeds(target: str) -> list[bytes]:
                               "initial_pose": problem_json["initial_pose"]}).encode()],
     }
     return by_target[target]
+
+
+def _tls_seeds() -> list[bytes]:
+    """Each TLS file of a valid folder, behind the byte that puts it back in place, once
+    for loading and once for issuing."""
+    folder = _tls_folder()
+    return [bytes([i + flag]) + (folder / name).read_bytes()
+            for flag in (0, 4) for i, name in enumerate(_TLS_FILES)]
 
 
 def _split(*parts: bytes) -> bytes:

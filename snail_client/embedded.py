@@ -24,6 +24,7 @@ from pathlib import Path
 from snail_common.net.conn import format_addr
 from snail_common.net.tls import make_certs
 
+from .links import DEFAULT_LINK_TIMEOUT
 from .secure import DEFAULT_BUSY_WAIT, SecureRunner, ServiceError
 
 STARTUP_TIMEOUT = 60.0
@@ -141,6 +142,7 @@ def check_addresses(garbler: str | None, evaluator: str | None,
 def connected(garbler: str | None = None, evaluator: str | None = None,
               tls_dir: str | None = None, daemon_args: tuple[str, ...] = (),
               busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
+              link_timeout: float = DEFAULT_LINK_TIMEOUT,
               ) -> Iterator[tuple[SecureRunner, Services | None]]:
     """A runner for the servers at these addresses, or for embedded ones started for the
     block with ``daemon_args`` (yielded too, so a caller can watch them; None for remote
@@ -148,10 +150,11 @@ def connected(garbler: str | None = None, evaluator: str | None = None,
     check_addresses(garbler, evaluator, tls_dir)
     if garbler:
         with SecureRunner(garbler, evaluator, tls_dir, busy_wait=busy_wait,
+                          link_timeout=link_timeout,
                           cert_name=cert_name) as runner:
             yield runner, None
         return
     with embedded_services(extra_args=daemon_args) as services, SecureRunner(
             services.garbler_addr, services.evaluator_addr, services.tls_dir,
-            busy_wait=busy_wait) as runner:
+            busy_wait=busy_wait, link_timeout=link_timeout) as runner:
         yield runner, services

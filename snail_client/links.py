@@ -8,6 +8,7 @@ dispatcher drops that session's messages, or the link's failure.
 from __future__ import annotations
 
 import asyncio
+import time
 from collections import deque
 from typing import Any
 
@@ -51,16 +52,28 @@ class Inbox:
         return any(isinstance(m, Exception) or m["t"] == "error" for m, _ in self._items)
 
 
-class Link:
-    """One server connection, its frames dispatched to waiting sessions by sid."""
+DEFAULT_LINK_TIMEOUT = 30.0
 
-    def __init__(self, conn: Connection) -> None:
+
+class Link:
+    """One server connection, its frames dispatched to waiting sessions by sid.
+
+    A link some session waits on and that has been quiet for a fifth of ``link_timeout``
+    is probed with a ``health_request``; one that stays silent for ``link_timeout`` is
+    declared broken. Without this a partitioned or stalled link (TCP keeps both ends
+    open, nothing arrives) would hold the client until its whole-run timeout."""
+
+    def __init__(self, conn: Connection, link_timeout: float = DEFAULT_LINK_TIMEOUT) -> None:
         self.conn = conn
         self.role = conn.peer_role
         self.waiting: dict[bytes, Inbox] = {}
         self.health: asyncio.Future | None = None
         self.failure: Exception | None = None
-        self._task = asyncio.get_running_loop().create_task(self._dispatch())
+        self.link_timeout = link_timeout
+        self.last_heard = time.monotonic()
+        loop = asyncio.get_running_loop()
+        self._task = loop.create_task(self._dispatch())
+        self._watch = loop.create_task(self._watchdog())
 
     @property
     def alive(self) -> bool:
@@ -75,13 +88,15 @@ class Link:
         try:
             while True:
                 msg, size = await self.conn.recv()
+                self.last_heard = time.monotonic()
                 sid = msg.get("sid")
                 if sid is not None:
                     inbox = self.waiting.get(sid)
                     if inbox is not None:  # else: a session already given up
                         inbox.put(msg, size)
-                elif msg["t"] == "health" and self.health and not self.health.done():
-                    self.health.set_result(msg)
+                elif msg["t"] == "health":  # asked for, or the watchdog's probe
+                    if self.health and not self.health.done():
+                        self.health.set_result(msg)
                 elif msg["t"] == "error":
                     raise RemoteError(msg["code"], msg["message"])
                 elif msg["t"] == "bye":
@@ -91,7 +106,26 @@ class Link:
         except (ConnectionClosed, ProtocolError, RemoteError) as exc:
             self._broken(exc)
 
+    async def _watchdog(self) -> None:
+        probe_after = self.link_timeout / 5
+        probed = 0.0
+        while self.alive:
+            await asyncio.sleep(probe_after / 2)
+            quiet = time.monotonic() - self.last_heard
+            if not self.waiting:
+                self.last_heard, probed = time.monotonic(), 0.0  # nothing owed: no clock
+            elif quiet > self.link_timeout:
+                self._broken(ConnectionClosed(
+                    f"nothing from the {self.role} for {quiet:.0f} s while a session waited "
+                    f"(--link-timeout {self.link_timeout:g}): the link is partitioned or "
+                    f"the server stalled"))
+            elif quiet > probe_after and probed < self.last_heard:
+                probed = time.monotonic()
+                self.conn.post(messages.make("health_request"))
+
     def _broken(self, exc: Exception) -> None:
+        if self.failure is not None:
+            return  # the first cause is the one to report
         self.failure = exc
         for inbox in self.waiting.values():
             inbox.put(exc)
@@ -114,7 +148,8 @@ class Link:
 
     async def close(self) -> None:
         self._task.cancel()
-        await asyncio.gather(self._task, return_exceptions=True)
+        self._watch.cancel()
+        await asyncio.gather(self._task, self._watch, return_exceptions=True)
         await self.conn.close(messages.make("bye"))
 
 

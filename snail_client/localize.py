@@ -25,6 +25,7 @@ from snail_common.loc.trust import DEFAULT_MAX_RMS_PX, assess, degenerate, pose_
 from snail_common.pnp.spec import Spec
 
 from .embedded import check_addresses, connected
+from .links import DEFAULT_LINK_TIMEOUT
 from .secure import DEFAULT_BUSY_WAIT, LINKS, SecureRunner
 
 BACKENDS = ("garbled", "cleartext", "float64")
@@ -40,6 +41,7 @@ class Options(PipelineOptions):
     evaluator: str | None = None
     tls_dir: str | None = None
     busy_wait: float = DEFAULT_BUSY_WAIT
+    link_timeout: float = DEFAULT_LINK_TIMEOUT
     max_rms_px: float = DEFAULT_MAX_RMS_PX
     cert_name: str = "client"
 
@@ -92,7 +94,8 @@ def backend_for(options: Options) -> Iterator[Backend]:
         yield CircuitBackend()
     else:
         with connected(options.garbler, options.evaluator, options.tls_dir,
-                       busy_wait=options.busy_wait, cert_name=options.cert_name) as (runner, _):
+                       busy_wait=options.busy_wait, cert_name=options.cert_name,
+                       link_timeout=options.link_timeout) as (runner, _):
             yield GarbledBackend(runner)
 
 

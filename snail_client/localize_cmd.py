@@ -20,6 +20,7 @@ from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
 from snail_common.net.tls import TLSFileError
 
 from .inputs.options import load_frame, load_frames, localize_inputs, track_inputs
+from .links import DEFAULT_LINK_TIMEOUT
 from .localize import BACKENDS, Options, backend_for, localize
 from .progress import bar
 from .secure import DEFAULT_BUSY_WAIT, ServiceError
@@ -78,6 +79,11 @@ def _options(fn: Callable) -> Callable:
                      default=DEFAULT_BUSY_WAIT, show_default=True, metavar="SECONDS",
                      help="How long a secure run retries servers that answer busy (at "
                           "their session limit), with jittered backoff, before failing."),
+        click.option("--link-timeout", type=click.FloatRange(1, 3600),
+                     default=DEFAULT_LINK_TIMEOUT, show_default=True, metavar="SECONDS",
+                     help="A server link a run waits on is probed after a fifth of this "
+                          "in silence and given up (the run fails, naming the link) after "
+                          "this long: a partition or a stalled server."),
         click.option("--json", "as_json", is_flag=True,
                      help="Print the snail-result/1 JSON record(s) instead of a summary."),
         click.option("--output", type=click.Path(dir_okay=False, writable=True),
@@ -93,7 +99,7 @@ def _make_options(kw: dict) -> Options:
         return Options(**{k: kw[k] for k in (
             "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
             "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations",
-            "busy_wait", "max_rms_px", "cert_name", "solve")})
+            "busy_wait", "max_rms_px", "cert_name", "solve", "link_timeout")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 

@@ -58,7 +58,7 @@ from snail_common.net.errors import (
     RemoteError,
 )
 
-from .links import Inbox, Link, ServiceError, labels_and_stats
+from .links import DEFAULT_LINK_TIMEOUT, Inbox, Link, ServiceError, labels_and_stats
 
 LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
          "evaluator_to_client", "garbler_to_client")
@@ -120,7 +120,8 @@ class AsyncSecureRunner:
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
-                 busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client") -> None:
+                 busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
+                 link_timeout: float = DEFAULT_LINK_TIMEOUT) -> None:
         families.register_all()
         self.garbler_addr = _addr(garbler_addr, "garbler address")
         self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
@@ -130,6 +131,7 @@ class AsyncSecureRunner:
         self.connect_timeout = connect_timeout
         self.ahead = ahead
         self.busy_wait = busy_wait
+        self.link_timeout = link_timeout
         self.last: Invocation | None = None
         self.totals = dict.fromkeys(LINKS, 0)
         self.invocations = 0
@@ -149,7 +151,7 @@ class AsyncSecureRunner:
                                          self.connect_timeout)
                 except ConnectionClosed as exc:
                     raise ServiceError(str(exc)) from None
-                link = self._links[role] = Link(conn)
+                link = self._links[role] = Link(conn, self.link_timeout)
             return link
 
     async def connect(self) -> tuple[Link, Link]:
@@ -373,10 +375,12 @@ class SecureRunner:
     def __init__(self, garbler_addr: Address, evaluator_addr: Address,
                  tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
-                 busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client") -> None:
+                 busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
+                 link_timeout: float = DEFAULT_LINK_TIMEOUT) -> None:
         self._loop = new_event_loop()
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
-                                         connect_timeout, ahead, busy_wait, cert_name)
+                                         connect_timeout, ahead, busy_wait, cert_name,
+                                         link_timeout)
 
     def expect(self, circuit_id: str, count: int) -> None:
         """At least ``count`` invocations of ``circuit_id`` are coming (see the async

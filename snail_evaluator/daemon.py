@@ -276,7 +276,7 @@ class EvaluatorDaemon(Daemon):
             t_done = time.monotonic()
             outputs = ev.output_labels()
         except ProtocolError as exc:
-            self._fail(s, exc)
+            self._fail(s, ProtocolError(exc.code, f"the garbler's table stream: {exc.message}"))
             raise ProtocolError(exc.code, exc.message) from None  # closes the garbler conn
         except (ConnectionClosed, TimeoutError) as exc:
             code = TIMEOUT if isinstance(exc, TimeoutError) else PEER_LOST

@@ -1,6 +1,8 @@
 """``snail-bench engine`` runs end to end (garbler and evaluator processes included) and
 prints the documented shape; a small configuration keeps it a smoke test."""
 
+import pytest
+
 from snail_bench.engine import engine_report
 
 RATES = ("aes_blocks_per_s", "garble_and_per_s", "evaluate_and_per_s", "end_to_end_and_per_s")
@@ -9,10 +11,25 @@ RATES = ("aes_blocks_per_s", "garble_and_per_s", "evaluate_and_per_s", "end_to_e
 def test_engine_report_shape_and_sanity():
     report = engine_report(wide_layers=2, deep_layers=20)["engine"]
     assert set(report) >= {"aes_blocks_per_s", "garble_and_per_s", "evaluate_and_per_s",
-                           "step_overhead_us"}
+                           "step_overhead_us", "scheme", "bytes_per_and"}
     assert all(report[k] > 0 for k in RATES)
     assert report["step_overhead_us"] > 0
     assert report["wide_and"] == 2 * (1 << 15)
     assert report["deep_steps"] >= 2 * 20
     # one AES call per hashed label: the engine cannot beat the raw AES rate per label
     assert report["evaluate_and_per_s"] < report["aes_blocks_per_s"] / 2
+    assert report["scheme"] == "halfgates" and report["bytes_per_and"] == 32
+    three = report["schemes"]["threehalves"]
+    assert all(three[k] > 0 for k in RATES[1:])
+    # 3 half-labels and 5 control bits per AND, the control bits padded per 8 Ki-gate block
+    assert three["bytes_per_and"] == pytest.approx(24.625, abs=0.01)
+    assert report["bytes_ratio"] == pytest.approx(197 / 256, abs=1e-3)
+    assert three["evaluate_and_per_s"] < report["aes_blocks_per_s"] / 3
+
+
+def test_one_scheme_at_the_top():
+    report = engine_report(wide_layers=1, deep_layers=4, schemes=("threehalves",))["engine"]
+    assert report["scheme"] == "threehalves" and set(report["schemes"]) == {"threehalves"}
+    assert "bytes_ratio" not in report
+    with pytest.raises(ValueError, match="schemes"):
+        engine_report(wide_layers=1, deep_layers=4, schemes=("quarter",))

@@ -47,13 +47,13 @@ class Op:
         self.schedule = schedule_circuit(self.circuit)
         self.n_args, self.dtype = n_args, np.dtype(in_dtype)
 
-    def check(self, *values: np.ndarray) -> np.ndarray:
+    def check(self, *values: np.ndarray, scheme: str = "halfgates") -> np.ndarray:
         """Garble one batch of LANES values per argument; assert the decoded bits equal the
         cleartext bits; return the decoded outputs."""
         named = {f"x{i}": np.asarray(v, self.dtype) for i, v in enumerate(values)}
         bits = encode_inputs(self.circuit, named)[0]
         want = evaluate_bits(self.schedule, bits[None])[0]
-        got = garbled_run(self.schedule, bits)
+        got = garbled_run(self.schedule, bits, scheme)
         assert np.array_equal(got, want), f"{int((got != want).sum())} output bits differ"
         return decode_outputs(self.circuit, got[None])["r"]
 
@@ -101,6 +101,18 @@ def test_edge_cases_match_cleartext(op, name):
     grids = [np.resize(g, size) for g in grids]  # the last batch wraps around
     for k in range(0, size, LANES):
         o.check(*(g[k : k + LANES] for g in grids))
+
+
+@pytest.mark.parametrize("name", sorted(OPS))
+def test_three_halves_matches_cleartext(op, name):
+    """Every op garbled with three-halves: one batch of edge and random values."""
+    o = op(name)
+    rng = np.random.default_rng(len(name))
+    if o.dtype == np.int32:
+        pool = np.concatenate([I32_EDGES, rng.integers(-2**31, 2**31, LANES, dtype=np.int32)])
+    else:
+        pool = np.concatenate([F32_EDGES, rng.standard_normal(LANES).astype(np.float32)])
+    o.check(*(rng.choice(pool, LANES) for _ in range(o.n_args)), scheme="threehalves")
 
 
 def test_decoded_values_are_the_float_results(op):

@@ -67,27 +67,31 @@ def run(schedule, bits, **garbler_args):
     return decode_output_labels(delta, garbler.output_zero_labels, ev.output_labels())
 
 
+SCHEMES = ("halfgates", "threehalves")
+
+
 @settings(max_examples=60, deadline=None)
 @given(circuit=random_circuits(), block=st.sampled_from([1, 2, 3, 7, 4096]),
-       reuse=st.booleans(), data=st.data())
-def test_random_circuits_match_cleartext(circuit, block, reuse, data):
+       reuse=st.booleans(), scheme=st.sampled_from(SCHEMES), data=st.data())
+def test_random_circuits_match_cleartext(circuit, block, reuse, scheme, data):
     schedule = schedule_circuit(circuit, reuse_slots=reuse)
     seed = data.draw(st.integers(0, 2**32 - 1))
     bits = np.random.default_rng(seed).integers(0, 2, (3, circuit.n_inputs)).astype(bool)
     expect = evaluate_bits(schedule, bits)
     for row, want in zip(bits, expect):
-        got = run(schedule, row, block_gates=block, frame_bytes=32 * block * 2)
+        got = run(schedule, row, block_gates=block, frame_bytes=32 * block * 2, scheme=scheme)
         assert np.array_equal(got, want)
 
 
 @settings(max_examples=25, deadline=None)
-@given(circuit=random_circuits(), cuts=st.lists(st.integers(0, 10**6), max_size=12))
-def test_stream_cut_anywhere(circuit, cuts):
+@given(circuit=random_circuits(), cuts=st.lists(st.integers(0, 10**6), max_size=12),
+       scheme=st.sampled_from(SCHEMES))
+def test_stream_cut_anywhere(circuit, cuts, scheme):
     """The evaluator accepts the byte stream split at arbitrary points (socket reads)."""
     schedule = schedule_circuit(circuit)
     bits = np.random.default_rng(len(cuts)).integers(0, 2, circuit.n_inputs).astype(bool)
     seed, delta = fresh_seed(), fresh_delta()
-    garbler = Garbler(schedule, seed, delta, block_gates=5)
+    garbler = Garbler(schedule, seed, delta, block_gates=5, scheme=scheme)
     stream = b"".join(garbler.frames())
     points = sorted({c % (len(stream) + 1) for c in cuts} | {0, len(stream)})
     ev = Evaluator(schedule, active_input_labels(seed, delta, bits))
@@ -122,14 +126,16 @@ def wide_and_layers(count: int, layers: int):
     return b.build()
 
 
-def test_wide_steps_span_blocks_and_frames():
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_wide_steps_span_blocks_and_frames(scheme):
     """Steps wider than a block reuse their own operand slots; frames cut between blocks."""
     schedule = schedule_circuit(wide_and_layers(3000, 3))
     bits = np.random.default_rng(7).integers(0, 2, (2, schedule.n_inputs)).astype(bool)
     expect = evaluate_bits(schedule, bits)
     for row, want in zip(bits, expect):
-        assert np.array_equal(run(schedule, row, block_gates=1000, frame_bytes=70_000), want)
-        assert np.array_equal(garbled_run(schedule, row), want)
+        assert np.array_equal(run(schedule, row, block_gates=1000, frame_bytes=70_000,
+                                  scheme=scheme), want)
+        assert np.array_equal(garbled_run(schedule, row, scheme), want)
 
 
 def test_small_steps_share_frames():
@@ -177,14 +183,20 @@ def test_bristol_files_present():
     assert len(BRISTOL_FILES) >= 16
 
 
-@pytest.mark.parametrize("path", BRISTOL_FILES, ids=lambda p: p.stem)
-def test_bristol_garbled_matches_cleartext(path):
+# three-halves on every file but the two slow divisions (the others cover their gate mix)
+BRISTOL_RUNS = [(p, s) for s in SCHEMES for p in BRISTOL_FILES
+                if s == "halfgates" or p.stem not in ("divide64", "udivide64")]
+
+
+@pytest.mark.parametrize(("path", "scheme"), BRISTOL_RUNS,
+                         ids=lambda v: v if isinstance(v, str) else v.stem)
+def test_bristol_garbled_matches_cleartext(path, scheme):
     circuit = load_bristol(path)
     schedule = schedule_circuit(circuit)
     rng = np.random.default_rng(zlib.crc32(path.stem.encode()))
     bits = rng.integers(0, 2, (3, circuit.n_inputs)).astype(bool)
     bits[0] = False  # all-zero inputs exercise the constant paths
-    assert np.array_equal(garbled_run(schedule, bits), evaluate_bits(schedule, bits))
+    assert np.array_equal(garbled_run(schedule, bits, scheme), evaluate_bits(schedule, bits))
 
 
 def in_place_schedule() -> Schedule:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import socket
 import struct
 import time
 
@@ -15,11 +16,14 @@ from test_service_e2e import hello, raw, read_msg
 from snail_client.secure import SecureRunner
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net import errors
+from snail_common.net import tls as tls_mod
+from snail_common.net.conn import parse_addr
 
 
 @pytest.fixture(scope="module")
 def services(tmp_path_factory):
-    yield from daemons_with(tmp_path_factory, "--idle-timeout", "1", "--session-timeout", "2")
+    yield from daemons_with(tmp_path_factory, "--idle-timeout", "1", "--session-timeout", "2",
+                            "--handshake-timeout", "1")
 
 
 @pytest.mark.parametrize("role", ["garbler", "evaluator"])
@@ -55,3 +59,19 @@ def test_a_client_idle_between_frames_reconnects(services):
         np.testing.assert_array_equal(runner.run(circuit, bits), want)
         time.sleep(2.5)  # both servers close the idle links meanwhile
         np.testing.assert_array_equal(runner.run(circuit, bits), want)
+
+
+@pytest.mark.parametrize("tls", [False, True], ids=["no TLS handshake", "no hello"])
+def test_a_connection_that_stalls_before_hello_is_closed_after_the_handshake_timeout(
+        services, tls):
+    host, port = parse_addr(services.evaluator_addr)
+    plain = socket.create_connection((host, port), timeout=10)
+    sock = (tls_mod.client_context(services.tls_dir, "client")
+            .wrap_socket(plain, server_hostname=host) if tls else plain)
+    with contextlib.closing(sock):
+        t0 = time.monotonic()
+        with contextlib.suppress(ConnectionError, OSError):
+            while sock.recv(4096):
+                pass
+        took = time.monotonic() - t0
+    assert 0.8 < took < 5, took  # the 1 s handshake timeout, not the 1 s idle one + more

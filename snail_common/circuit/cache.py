@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import re
 import shutil
@@ -59,6 +60,14 @@ def cache_dir() -> Path:
         return Path(os.environ[CACHE_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "snail"
+
+
+# Warnings go to the "snail" logger's JSON lines (fields under the formatter's key).
+_log = logging.getLogger("snail.cache")
+
+
+def _warn(event: str, **fields: object) -> None:
+    _log.warning(event, extra={"snail_fields": fields})
 
 
 _NETLIST = ("kind", "a", "b", "outputs", "and_depth", "xor_depth")
@@ -184,11 +193,16 @@ def cached(name: str, build: Callable[[], Circuit],
             with contextlib.suppress(OSError):
                 os.utime(path)  # used now: the last to be evicted
             return loaded
-        except (OSError, ValueError, KeyError, TypeError):
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            _warn("cache_entry_rebuilt", entry=path.name, reason=str(exc))
             shutil.rmtree(path, ignore_errors=True)  # corrupt or stale format: rebuild
     circuit = build()
     schedule = schedule_circuit(circuit)
-    save(path, circuit, schedule)
+    try:
+        save(path, circuit, schedule)
+    except OSError as exc:  # a full or read-only disk: serve from memory, say so
+        _warn("cache_store_failed", entry=path.name, reason=str(exc))
+        return circuit, schedule
     evict(path.parent, int(_settings["max_bytes"]), keep=path)
     return circuit, schedule
 
@@ -231,7 +245,10 @@ def cached_interface(name: str, build: Callable[[], Circuit],
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
             path.unlink(missing_ok=True)  # corrupt: rebuild
     iface = build().interface()
-    save_interface(path, iface)
+    try:
+        save_interface(path, iface)
+    except OSError as exc:
+        _warn("cache_store_failed", entry=path.name, reason=str(exc))
     return iface
 
 

@@ -17,7 +17,15 @@ from snail_common.circuit.runner import first_block, next_block, run_plan
 from snail_common.circuit.schedule import Schedule
 
 from .halfgates import HalfGates
-from .stream import BYTES_PER_AND, HEADER, Header, StreamError
+from .stream import (
+    HEADER,
+    SCHEME_HALF_GATES,
+    Header,
+    StreamError,
+    table_view,
+    table_words,
+)
+from .threehalves import ThreeHalves
 
 
 class Evaluator:
@@ -81,21 +89,22 @@ class Evaluator:
         s = self._schedule
         header.check(s.n_and, s.n_inputs, len(s.output_slots))
         self.header = header
-        self._bytes_per_and = BYTES_PER_AND[header.scheme]
-        kernel = HalfGates(header.key, header.block_gates)
+        kind = HalfGates if header.scheme == SCHEME_HALF_GATES else ThreeHalves
+        kernel = kind(header.key, header.block_gates)
         self._run = run_plan(plan_for(s), self._labels, kernel.evaluate, header.block_gates)
         self._block = first_block(self._run)
 
     def _run_blocks(self, data: memoryview) -> int:
         """Run blocks while the data holds their tables; returns the bytes consumed."""
-        per_and, size, pos = self._bytes_per_and, len(data), 0
+        scheme, size, pos = self.header.scheme, len(data), 0
         while self._block is not None:
             m = self._block
-            if size - pos < per_and * m:
-                self._need = per_and * m
+            w = table_words(scheme, m)
+            if size - pos < 8 * w:
+                self._need = 8 * w
                 break
-            tables = np.frombuffer(data, np.uint64, 4 * m, pos).reshape(2 * m, 2)
-            pos += per_and * m
+            tables = table_view(scheme, np.frombuffer(data, np.uint64, w, pos), m)
+            pos += 8 * w
             self._block = next_block(self._run, tables)
         return pos
 

@@ -20,17 +20,21 @@ from .halfgates import HalfGates
 from .labels import check_delta, derive_zero_labels
 from .stream import (
     BLOCK_GATES,
-    BYTES_PER_AND,
     FRAME_BYTES,
     KEY_BYTES,
     MAX_BLOCK_GATES,
     SCHEME_HALF_GATES,
     Header,
+    scheme_id,
+    table_view,
+    table_words,
 )
+from .threehalves import ThreeHalves, control_key
 
 
 class Garbler:
-    """Garbles one run of ``schedule`` for the client's ``seed`` and offset ``delta``.
+    """Garbles one run of ``schedule`` for the client's ``seed`` and offset ``delta`` with
+    ``scheme`` ("halfgates" or "threehalves", or the stream's scheme number).
 
     ``frames()`` yields the stream (header first); once it is exhausted,
     ``output_zero_labels`` holds what the client needs to decode.
@@ -38,7 +42,8 @@ class Garbler:
 
     def __init__(self, schedule: Schedule, seed: bytes, delta: np.ndarray | bytes,
                  key: bytes | None = None, block_gates: int = BLOCK_GATES,
-                 frame_bytes: int = FRAME_BYTES) -> None:
+                 frame_bytes: int = FRAME_BYTES, scheme: str | int = SCHEME_HALF_GATES) -> None:
+        scheme = scheme_id(scheme)
         if not 1 <= block_gates <= MAX_BLOCK_GATES:
             raise ValueError(f"block_gates must be in 1..{MAX_BLOCK_GATES}, got {block_gates}")
         if key is not None and len(key) != KEY_BYTES:
@@ -47,10 +52,12 @@ class Garbler:
         self._plan = plan_for(schedule)
         self._delta = check_delta(delta).copy()
         self._input_zero = derive_zero_labels(seed, FIRST_INPUT + schedule.n_inputs)
+        # three-halves' per-gate random bits: secret to the garbler, reproducible from the seed
+        self._random_key = control_key(seed) if scheme != SCHEME_HALF_GATES else None
         key = key if key is not None else secrets.token_bytes(KEY_BYTES)
         self.header = Header(schedule.n_and, schedule.n_inputs, len(schedule.output_slots),
-                             block_gates, key)
-        self._frame_bytes = max(frame_bytes, block_gates * BYTES_PER_AND[SCHEME_HALF_GATES])
+                             block_gates, key, scheme)
+        self._frame_bytes = max(frame_bytes, 8 * table_words(scheme, block_gates))
         self._outputs: np.ndarray | None = None
 
     @property
@@ -70,16 +77,19 @@ class Garbler:
         yield self.header.pack()
         labels = np.empty((s.n_slots, 2), np.uint64)
         labels[: len(self._input_zero)] = self._input_zero
-        kernel = HalfGates(self.header.key, block, self._delta)
+        scheme = self.header.scheme
+        kernel = (HalfGates(self.header.key, block, self._delta) if scheme == SCHEME_HALF_GATES
+                  else ThreeHalves(self.header.key, block, self._delta, self._random_key))
         frame = np.empty(self._frame_bytes // 8, np.uint64)
         run = run_plan(self._plan, labels, kernel.garble, block)
         pos, m = 0, first_block(run)
         while m is not None:  # each block's tables go to the frame's next free rows
-            if pos + 4 * m > len(frame):
+            w = table_words(scheme, m)
+            if pos + w > len(frame):
                 yield frame[:pos].tobytes()
                 pos = 0
-            tables = frame[pos : pos + 4 * m].reshape(2 * m, 2)
-            pos += 4 * m
+            tables = table_view(scheme, frame[pos : pos + w], m)
+            pos += w
             m = next_block(run, tables)
         if pos:
             yield frame[:pos].tobytes()

@@ -74,6 +74,11 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Seconds a connection may stay silent with no session under way "
                           "before it is closed. A frame, once begun, must arrive within "
                           "--session-timeout."),
+        click.option("--handshake-timeout", type=click.FloatRange(0.1, 3600),
+                     default=defaults.handshake_timeout, show_default=True,
+                     help="Seconds a new connection has to finish its TLS handshake and "
+                          "say hello; slower ones are closed (a peer that connects and "
+                          "stalls holds nothing for longer)."),
         click.option("--max-sessions-per-peer", type=click.IntRange(1, 100_000),
                      default=defaults.max_sessions_per_peer, show_default=True,
                      help="Concurrent sessions one client certificate name may hold "
@@ -112,6 +117,7 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    ahead_bytes_per_peer=kwargs["ahead_mb_per_peer"] << 20,
                    lane_window_ms=kwargs["lane_window_ms"], max_lanes=kwargs["max_lanes"],
                    idle_timeout=kwargs["idle_timeout"],
+                   handshake_timeout=kwargs["handshake_timeout"],
                    max_sessions_per_peer=kwargs["max_sessions_per_peer"],
                    max_connections_per_peer=kwargs["max_connections_per_peer"],
                    tls_dir=kwargs["tls_dir"], metrics=kwargs["metrics"])

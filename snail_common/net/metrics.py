@@ -12,12 +12,13 @@ import os
 import resource
 import sys
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from .errors import BUSY  # a session refused for lack of a slot: not counted as failed
 
 OK = "ok"
-GAUGES = ("active", "streaming", "connections", "queued_bytes")
+GAUGES = ("active", "streaming", "queued_bytes")  # kept up to date by the daemon
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
@@ -26,6 +27,7 @@ class Metrics:
     """Everything an operator can ask a daemon about its load."""
 
     role: str
+    connections: Callable[[], int]  # read when asked: a count the daemon already keeps
     gauges: dict[str, int] = field(default_factory=lambda: dict.fromkeys(GAUGES, 0))
     sessions: Counter = field(default_factory=Counter)  # outcome -> sessions ended so
     refused: Counter = field(default_factory=Counter)  # reason -> connections refused
@@ -45,7 +47,7 @@ class Metrics:
     def health(self) -> dict[str, int]:
         """The ``sessions`` field of the health message."""
         done, busy = self.sessions[OK], self.sessions[BUSY]
-        return {**self.gauges, "done": done,
+        return {**self.gauges, "connections": self.connections(), "done": done,
                 "failed": sum(self.sessions.values()) - done - busy, "busy": busy,
                 "rejected": sum(self.refused.values()), "rss_bytes": rss_bytes()}
 
@@ -64,7 +66,7 @@ class Metrics:
         metric("sessions_streaming", "gauge", "Sessions streaming garbled tables.",
                [(role, self.gauges["streaming"])])
         metric("connections", "gauge", "Open authenticated connections.",
-               [(role, self.gauges["connections"])])
+               [(role, self.connections())])
         metric("queued_bytes", "gauge", "Garbled-table bytes buffered ahead of labels.",
                [(role, self.gauges["queued_bytes"])])
         metric("resident_memory_bytes", "gauge", "Resident set size of the daemon.",

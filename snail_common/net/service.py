@@ -105,8 +105,8 @@ class Daemon:
         self.connections: set[Connection] = set()
         self._tasks: set[asyncio.Task] = set()
         self._planned: dict[str, int] = {}  # circuit id -> id() of the planned schedule
-        self.metrics = Metrics(self.role)
-        self.counters = self.metrics.gauges  # active, streaming, connections, queued_bytes
+        self.metrics = Metrics(self.role, lambda: len(self.connections))
+        self.counters = self.metrics.gauges  # active, streaming, queued_bytes
         self._peer_sessions: Counter[str] = Counter()
         self.revoked = read_revoked(options.tls_dir) if options.tls_dir else frozenset()
         self.started = time.monotonic()
@@ -129,12 +129,10 @@ class Daemon:
                              max_and_gates=self.options.max_and_gates)
 
     def health(self) -> dict[str, Any]:
-        self.counters["connections"] = len(self.connections)
         return messages.make("health", role=self.role, sessions=self.metrics.health(),
                              uptime_s=round(time.monotonic() - self.started, 3))
 
     def prometheus(self) -> str:
-        self.counters["connections"] = len(self.connections)
         return self.metrics.prometheus()
 
     def submit(self, fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:

@@ -1,0 +1,126 @@
+"""A TCP proxy on loopback that a test puts on one link and then breaks on purpose.
+
+TLS passes through it untouched (it only moves bytes), so the daemons and the client see
+a real network fault: a peer that stops reading (``stall``), a partition that keeps both
+sockets open and silent (``partition``), a link cut with a reset (``cut``), or a slow
+link (``rate``). It runs its own event loop in a thread, so tests can drive blocking
+clients while it misbehaves.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import struct
+import threading
+from dataclasses import dataclass, field
+
+CHUNK = 16384
+
+
+@dataclass
+class _Pipe:
+    """One direction of one proxied connection."""
+
+    reader: asyncio.StreamReader
+    writer: asyncio.StreamWriter
+    moved: int = 0
+
+
+@dataclass
+class FaultProxy:
+    """Forwards 127.0.0.1:``port`` to ``target``; ``mode`` changes what it does now."""
+
+    target: tuple[str, int]
+    mode: str = "forward"  # forward | stall | partition
+    rate_bytes_per_s: float | None = None
+    port: int = 0
+    bytes_forwarded: int = 0
+    _loop: asyncio.AbstractEventLoop = field(default_factory=asyncio.new_event_loop)
+    _writers: list[asyncio.StreamWriter] = field(default_factory=list)
+    _thread: threading.Thread | None = None
+
+    @property
+    def address(self) -> str:
+        return f"127.0.0.1:{self.port}"
+
+    def __enter__(self) -> FaultProxy:
+        ready = threading.Event()
+
+        def run() -> None:
+            asyncio.set_event_loop(self._loop)
+            server = self._loop.run_until_complete(
+                asyncio.start_server(self._accept, "127.0.0.1", 0))
+            self.port = server.sockets[0].getsockname()[1]
+            ready.set()
+            self._loop.run_forever()
+            server.close()
+            self._loop.run_until_complete(server.wait_closed())
+
+        self._thread = threading.Thread(target=run, daemon=True)
+        self._thread.start()
+        ready.wait(10)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._loop.call_soon_threadsafe(self._close_all, False)
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        if self._thread:
+            self._thread.join(10)
+
+    def set(self, mode: str, rate_bytes_per_s: float | None = None) -> None:
+        """Switch to ``mode`` (forward, stall, partition) for every connection, now."""
+        self.mode, self.rate_bytes_per_s = mode, rate_bytes_per_s
+
+    def cut(self) -> None:
+        """Reset every proxied connection (RST, not FIN), as a crashed middlebox would."""
+        done = threading.Event()
+        self._loop.call_soon_threadsafe(lambda: (self._close_all(True), done.set()))
+        done.wait(5)
+
+    def _close_all(self, reset: bool) -> None:
+        for writer in self._writers:
+            sock = writer.get_extra_info("socket")
+            if reset and sock is not None:
+                with contextlib.suppress(OSError):  # already closed by its peer
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER,
+                                    struct.pack("ii", 1, 0))
+            writer.close()
+        self._writers.clear()
+
+    async def _accept(self, reader: asyncio.StreamReader,
+                      writer: asyncio.StreamWriter) -> None:
+        try:
+            up_reader, up_writer = await asyncio.open_connection(*self.target)
+        except OSError:
+            writer.close()
+            return
+        pair = [writer, up_writer]
+        self._writers += pair
+        await asyncio.gather(self._pump(_Pipe(reader, up_writer)),
+                             self._pump(_Pipe(up_reader, writer)), return_exceptions=True)
+        for w in pair:
+            w.close()
+            with contextlib.suppress(ValueError):  # cut() may have cleared the list
+                self._writers.remove(w)
+
+    async def _pump(self, pipe: _Pipe) -> None:
+        """Copy one direction; in ``stall`` or ``partition`` read nothing more (so the
+        sender's buffers fill, as behind a peer that stopped reading), and in
+        ``partition`` also hold back what was already read."""
+        while True:
+            while self.mode in ("stall", "partition"):
+                await asyncio.sleep(0.01)
+            data = await pipe.reader.read(CHUNK)
+            if not data:
+                pipe.writer.close()
+                return
+            while self.mode == "partition":
+                await asyncio.sleep(0.01)
+            pipe.writer.write(data)
+            await pipe.writer.drain()
+            pipe.moved += len(data)
+            self.bytes_forwarded += len(data)
+            if self.rate_bytes_per_s:
+                await asyncio.sleep(len(data) / self.rate_bytes_per_s)
