@@ -19,6 +19,7 @@ from pathlib import Path
 from snail_client.inputs.camera import load_camera
 from snail_client.inputs.colmap import read_model
 from snail_client.inputs.tagmap import load_tagmap
+from snail_common.loc.mapfile import load_frame, load_map
 from snail_common.loc.problem import ProblemError, load_problem, read_sequence
 from snail_common.net import messages
 from snail_common.net.errors import ProtocolError
@@ -79,6 +80,16 @@ def tagmap(data: bytes) -> None:
 def sequence(data: bytes) -> None:
     """A track sequence file (JSON lines, an array or one problem)."""
     _file(data, read_sequence)
+
+
+def map_file(data: bytes) -> None:
+    """A snail-map/1 file (the map owner's)."""
+    _file(data, load_map)
+
+
+def frame_file(data: bytes) -> None:
+    """A snail-frame/1 file (the device's, in the map-owner setting)."""
+    _file(data, load_frame)
 
 
 def _colmap(data: bytes, kind: str) -> None:
@@ -153,6 +164,7 @@ PARSERS: dict[str, tuple[Target, tuple[type[Exception], ...]]] = {
     "camera": (camera, (ProblemError,)), "tagmap": (tagmap, (ProblemError,)),
     "colmap_bin": (colmap_bin, (ProblemError,)), "colmap_txt": (colmap_txt, (ProblemError,)),
     "revoked": (revoked, (TLSFileError,)), "certificates": (certificates, (TLSFileError,)),
+    "map": (map_file, (ProblemError,)), "frame": (frame_file, (ProblemError,)),
 }
 
 
@@ -197,6 +209,12 @@ def seeds(target: str) -> list[bytes]:
         "colmap_txt": [_colmap_txt_seed()],
         "revoked": [b"# lost\nrobot7\n" + b"ab:" * 31 + b"cd\n"],
         "certificates": _tls_seeds(),
+        "map": [json.dumps({"format": "snail-map/1", "points": [
+            {"id": 17, "xyz": [0, 0, 0]}, {"id": 4, "xyz": [1.5, 0, 0.25]},
+            {"id": 90, "xyz": [1, 1, 0]}]}).encode()],
+        "frame": [json.dumps({"format": "snail-frame/1", "camera": problem_json["camera"],
+                              "points2d": problem_json["points2d"], "map_ids": [17, 4, 90, 5],
+                              "initial_pose": problem_json["initial_pose"]}).encode()],
     }
     return by_target[target]
 

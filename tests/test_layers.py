@@ -21,6 +21,7 @@ FLOORS = {
     "snail_common.pnp": 3,
     "snail_common.net": 3,
     "snail_common.loc": 4,
+    "snail_common.ot": 4,
     "snail_common.families": 4,
     "snail_client": 5,
     "snail_garbler": 5,
