@@ -103,7 +103,11 @@ def _fleet(runner: SecureRunner, spec: Spec, repeat: int, clients: int) -> dict:
                 return statistics.median(walls)
 
         tasks = [asyncio.ensure_future(client()) for _ in range(clients)]
-        await started.wait()
+        barrier = asyncio.ensure_future(started.wait())
+        await asyncio.wait([barrier, *tasks], return_when=asyncio.FIRST_COMPLETED)
+        if not barrier.done():  # a client failed before the measured phase: say why
+            barrier.cancel()
+            await asyncio.gather(*tasks)  # raises the first failure; the rest go with it
         t0 = time.perf_counter()
         medians = await asyncio.gather(*tasks)
         return time.perf_counter() - t0, medians

@@ -439,6 +439,11 @@ class SecureRunner:
         return self._complete(self._runner.health(role))
 
     @property
+    def scheme(self) -> str:
+        """The garbling scheme of this runner's sessions."""
+        return self._runner.scheme
+
+    @property
     def endpoints(self) -> tuple[tuple[str, int], tuple[str, int], str | Path]:
         """(garbler address, evaluator address, TLS directory): to open more clients."""
         r = self._runner
