@@ -50,6 +50,7 @@ from .errors import (
     RemoteError,
 )
 from .frames import MAX_FRAME
+from .heap import HeapTrimmer
 from .logs import announce, event
 from .metrics import OK, Metrics
 from .scrape import scrape_context, serve_scrapes
@@ -110,6 +111,7 @@ class Daemon:
         self._peer_sessions: Counter[str] = Counter()
         self.revoked = read_revoked(options.tls_dir) if options.tls_dir else frozenset()
         self.started = time.monotonic()
+        self.heap = HeapTrimmer()
         self.stopping = asyncio.Event()
         self.interrupted = False
 
@@ -202,6 +204,7 @@ class Daemon:
     def finish(self, peer: str, record: dict[str, Any]) -> None:
         """Free an admitted session and log its line (see ``log_session``)."""
         self.counters["active"] -= 1
+        self.heap.session_ended()
         if peer:
             self._peer_sessions[peer] -= 1
             if self._peer_sessions[peer] <= 0:
