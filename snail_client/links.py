@@ -79,6 +79,11 @@ class Link:
     def alive(self) -> bool:
         return self.failure is None and not self.conn.ended
 
+    def reusable(self) -> bool:
+        """Alive, also by the socket's own word (see Connection.peer_closed): a server
+        that restarted while this client was idle is found here, before a run uses it."""
+        return self.alive and not self.conn.peer_closed()
+
     @property
     def where(self) -> str:
         peer = self.conn.peer

@@ -47,6 +47,7 @@ from snail_common.gc import (
     fresh_delta,
     labels_to_bytes,
 )
+from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net import messages, tls
 from snail_common.net.chunks import write_labels
 from snail_common.net.conn import connect, new_event_loop, parse_addr
@@ -122,7 +123,7 @@ class AsyncSecureRunner:
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
                  link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 scheme: str = "halfgates") -> None:
+                 scheme: str = DEFAULT_SCHEME) -> None:
         families.register_all()
         self.garbler_addr = _addr(garbler_addr, "garbler address")
         self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
@@ -149,7 +150,7 @@ class AsyncSecureRunner:
     async def _link(self, role: str) -> Link:
         async with self._lock:
             link = self._links.get(role)
-            if link is None or not link.alive:
+            if link is None or not link.reusable():
                 addr = self.garbler_addr if role == "garbler" else self.evaluator_addr
                 try:
                     conn = await connect(*addr, self.ctx, "client", role,
@@ -395,7 +396,7 @@ class SecureRunner:
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
                  link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 scheme: str = "halfgates") -> None:
+                 scheme: str = DEFAULT_SCHEME) -> None:
         self._loop = new_event_loop()
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
                                          connect_timeout, ahead, busy_wait, cert_name,

@@ -112,7 +112,10 @@ class FaultProxy:
         while True:
             while self.mode in ("stall", "partition"):
                 await asyncio.sleep(0.01)
-            data = await pipe.reader.read(CHUNK)
+            try:
+                data = await pipe.reader.read(CHUNK)
+            except OSError:  # a reset (a killed peer): pass it on as a close, which also
+                data = b""  # ends the other direction's read
             if not data:
                 pipe.writer.close()
                 return

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import re
+import socket
 import ssl
 import sys
 from collections.abc import Callable
@@ -179,6 +180,23 @@ class Connection(asyncio.BufferedProtocol):
     def idle(self) -> bool:
         """Open with nothing unread: safe to reuse for a new session."""
         return not self._ended and self._inbox.empty()
+
+    def peer_closed(self) -> bool:
+        """Whether the peer's end is closed, read off the socket now: a loop that was not
+        running (a blocking runner between calls) has not yet taken in the FIN or reset,
+        so ``ended`` is still False. Data queued ahead of a FIN hides it."""
+        if self._ended:
+            return True
+        sock = self.transport.get_extra_info("socket") if self.transport else None
+        if sock is None:
+            return False
+        try:  # a duplicate descriptor: the loop's transport socket allows no recv
+            with socket.socket(fileno=socket.dup(sock.fileno())) as probe:
+                return probe.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        except BlockingIOError:
+            return False
+        except OSError:  # reset, or the descriptor is already gone
+            return True
 
     def _end(self, reason: Exception) -> None:
         """No more input: queue ``reason`` for the consumer (once)."""
