@@ -12,6 +12,7 @@ import numpy as np
 from snail_common import families
 from snail_common.circuit import evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import BristolError, load_bristol
+from snail_common.gc.stream import DEFAULT_SCHEME, SCHEMES
 
 
 def _parse_int(text: str) -> int:
@@ -144,7 +145,7 @@ def circuit(algorithm: str, mode: str, points: int, solve: str | None, solver: s
 
 
 @main.command()
-@click.option("--scheme", "schemes", type=click.Choice(["halfgates", "threehalves"]),
+@click.option("--scheme", "schemes", type=click.Choice(list(SCHEMES)),
               multiple=True, help="Garbling scheme to measure; repeat for several (default: "
                                   "both, half-gates first). The first one's numbers are the "
                                   "top-level fields; each scheme's are under 'schemes'.")
@@ -186,8 +187,8 @@ def engine(schemes: tuple[str, ...], as_json: bool) -> None:
 @click.option("--lane-window-ms", type=click.FloatRange(0, 1000), default=None,
               help="Embedded daemons only: their --lane-window-ms (batch concurrent "
                    "sessions into lanes; 0: off; default: the daemons' own).")
-@click.option("--scheme", type=click.Choice(["halfgates", "threehalves"]),
-              default="halfgates", show_default=True,
+@click.option("--scheme", type=click.Choice(list(SCHEMES)),
+              default=DEFAULT_SCHEME, show_default=True,
               help="Garbling scheme of every session: three-halves sends 0.77x the table "
                    "bytes but garbles slower, and is never batched into lanes.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")

@@ -26,6 +26,7 @@ from snail_client.embedded import connected
 from snail_client.progress import bar
 from snail_client.secure import AsyncSecureRunner, Invocation, SecureRunner
 from snail_common.circuit import registry
+from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.pnp.spec import Spec
 
 
@@ -34,7 +35,7 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
                    clients: int = 1, lane_window_ms: float | None = None,
                    quiet: bool = True,
                    on_done: Callable[[str, dict], object] | None = None,
-                   scheme: str = "halfgates") -> dict:
+                   scheme: str = DEFAULT_SCHEME) -> dict:
     """``{"service": {circuit_id: {...}}}``: per circuit, the first run and ``repeat``
     warm runs (median, min, max wall seconds), bytes per link and server timings of one
     run, and (embedded daemons only) each server's peak RSS so far: a high-water mark

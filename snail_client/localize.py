@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.loc.backends import Backend, CircuitBackend, Float64Backend, interface
 from snail_common.loc.pipeline import Localized
 from snail_common.loc.pipeline import Options as PipelineOptions
@@ -42,7 +43,7 @@ class Options(PipelineOptions):
     tls_dir: str | None = None
     busy_wait: float = DEFAULT_BUSY_WAIT
     link_timeout: float = DEFAULT_LINK_TIMEOUT
-    scheme: str = "halfgates"
+    scheme: str = DEFAULT_SCHEME
     max_rms_px: float = DEFAULT_MAX_RMS_PX
     cert_name: str = "client"
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from snail_common.gc.stream import DEFAULT_SCHEME, SCHEMES
 from snail_common.loc.problem import PoseVectors, ProblemError
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
 from snail_common.net.tls import TLSFileError
@@ -79,8 +80,8 @@ def _options(fn: Callable) -> Callable:
                      default=DEFAULT_BUSY_WAIT, show_default=True, metavar="SECONDS",
                      help="How long a secure run retries servers that answer busy (at "
                           "their session limit), with jittered backoff, before failing."),
-        click.option("--scheme", type=click.Choice(["halfgates", "threehalves"]),
-                     default="halfgates", show_default=True,
+        click.option("--scheme", type=click.Choice(list(SCHEMES)),
+                     default=DEFAULT_SCHEME, show_default=True,
                      help="Garbling scheme: three-halves (Rosulek-Roy 2021) sends 0.77x the "
                           "garbled-table bytes of half-gates but garbles slower: worth it "
                           "on a slow garbler-evaluator link."),

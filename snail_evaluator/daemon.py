@@ -33,7 +33,7 @@ from typing import Any
 from snail_common.circuit.ir import FIRST_INPUT
 from snail_common.circuit.schedule import Schedule
 from snail_common.gc import StreamError
-from snail_common.gc.stream import scheme_id
+from snail_common.gc.stream import DEFAULT_SCHEME, SCHEME_HALF_GATES, scheme_id
 from snail_common.net import messages
 from snail_common.net.chunks import LabelAssembler, write_labels
 from snail_common.net.conn import Connection
@@ -79,9 +79,10 @@ class Session:
     bytes_in: int = 0
     bytes_out: int = 0
     queued: int = 0  # table bytes buffered while the labels are awaited
-    scheme: str = "halfgates"  # as both halves declared it; the stream header must agree
+    scheme: str = DEFAULT_SCHEME  # as both halves declared it; the stream header must agree
     early: list[tuple[dict[str, Any], int]] = field(default_factory=list)  # labels that
     # came while the circuit was still loading, replayed once it is
+    early_bytes: int = 0  # their wire size
 
     def record(self, outcome: str, reason: str = "") -> dict:
         """This session's log line fields (see Daemon.log_session)."""
@@ -130,7 +131,7 @@ class EvaluatorDaemon(Daemon):
         self.admit(peer)
         s = Session(msg["sid"], msg["circuit"], msg["hash"],
                     asyncio.get_running_loop().create_future(), peer=peer, bytes_in=size,
-                    scheme=msg.get("scheme", "halfgates"))
+                    scheme=msg.get("scheme", DEFAULT_SCHEME))
         s.ready.add_done_callback(_consume)
         self.sessions[s.sid] = s
         return s
@@ -143,9 +144,25 @@ class EvaluatorDaemon(Daemon):
                 self.options.session_timeout, self._expire, s)
 
     def _expire(self, s: Session) -> None:
+        """The watchdog fired. A garbled-ahead session whose client is still busy with an
+        earlier session here is queued, not idle: it waits on, up to ``--idle-timeout``
+        in all (under load an invocation takes longer than ``--session-timeout``)."""
+        s.watchdog = None
+        if s.garbler and s.labels is not None and self._client_busy(s):
+            waited = time.monotonic() - s.started
+            left = self.options.idle_timeout - waited
+            if left > 0:
+                s.watchdog = asyncio.get_running_loop().call_later(
+                    min(self.options.session_timeout, left), self._expire, s)
+                return
         missing = "the garbler's table stream" if not s.garbler else "the client's input labels"
         self._fail(s, ProtocolError(TIMEOUT, f"{missing} did not arrive within "
                                              f"{self.options.session_timeout:g} s"))
+
+    def _client_busy(self, s: Session) -> bool:
+        """Whether the client of ``s`` has an earlier session still under way here."""
+        return any(x.client is s.client and x.started < s.started and x is not s
+                   for x in self.sessions.values())
 
     def _fail(self, s: Session, exc: ProtocolError) -> None:
         """End ``s`` with ``exc``: tell the client, wake the garbler side, free it."""
@@ -170,10 +187,10 @@ class EvaluatorDaemon(Daemon):
             raise ProtocolError(BAD_REQUEST, f"client and garbler disagree on the circuit "
                                              f"of this session ({s.circuit} vs "
                                              f"{msg['circuit']})")
-        if msg.get("scheme", "halfgates") != s.scheme:
+        if msg.get("scheme", DEFAULT_SCHEME) != s.scheme:
             raise ProtocolError(BAD_REQUEST, f"client and garbler disagree on the garbling "
                                              f"scheme of this session ({s.scheme} vs "
-                                             f"{msg.get('scheme', 'halfgates')})")
+                                             f"{msg.get('scheme', DEFAULT_SCHEME)})")
 
     # ---- the client side -------------------------------------------------------------------
     async def _serve_client(self, conn: Connection) -> None:
@@ -247,7 +264,7 @@ class EvaluatorDaemon(Daemon):
         if s.failure is None:
             s.labels = LabelAssembler("input_labels", FIRST_INPUT + schedule.n_inputs)
             self._arm(s)
-            early, s.early = s.early, []
+            early, s.early, s.early_bytes = s.early, [], 0
             for msg, size in early:
                 self._add_labels(s, msg, size)
 
@@ -259,11 +276,12 @@ class EvaluatorDaemon(Daemon):
                                      msg["sid"]))
             return
         if s.labels is None:  # its circuit is still loading
-            if sum(n for _, n in s.early) + size > MAX_EARLY_LABEL_BYTES:
+            if s.early_bytes + size > MAX_EARLY_LABEL_BYTES:
                 self._fail(s, ProtocolError(BAD_REQUEST, "more input labels than any "
                                                          "circuit takes"))
             elif s.failure is None:
                 s.early.append((msg, size))
+                s.early_bytes += size
             return
         self._add_labels(s, msg, size)
 
@@ -360,7 +378,7 @@ class EvaluatorDaemon(Daemon):
         Returns the evaluation, the bytes received, how many of them came before the
         labels and when the labels arrived."""
         received, ahead, timeout = 0, 0, self.options.session_timeout
-        laned = s.scheme == "halfgates"  # lanes batch half-gates sessions only
+        laned = scheme_id(s.scheme) == SCHEME_HALF_GATES  # lanes batch half-gates sessions only
         buffered: list[bytes] = []
         ev: Solo | EvalLane | None = None
         t_labels = time.monotonic()

@@ -32,7 +32,12 @@ from typing import Any
 
 from snail_common.circuit.schedule import Schedule
 from snail_common.gc import Garbler, check_delta
-from snail_common.gc.stream import SCHEME_HALF_GATES, scheme_id, table_words
+from snail_common.gc.stream import (
+    DEFAULT_SCHEME,
+    SCHEME_HALF_GATES,
+    scheme_id,
+    table_words,
+)
 from snail_common.net import messages
 from snail_common.net.chunks import write_labels
 from snail_common.net.conn import Connection, connect
@@ -55,6 +60,10 @@ from snail_common.net.service import Daemon, Options
 from .lanes import LaneBatcher, LaneView
 
 MAX_IDLE = 8  # pooled idle connections to the evaluator
+# why a session task was cancelled, as its log line and the client's error say
+CANCELLED_BY_CLIENT = "cancelled by the client"
+CLIENT_LEFT = "the client disconnected"
+SHUTTING_DOWN = "the garbler is shutting down"
 INLINE_INPUTS = 1 << 14
 # frame sizing: aim for a frame every ~2 ms of garbling so that the evaluator overlaps
 # even small or narrow circuits; the engine cost model is per AND gate plus per step
@@ -98,7 +107,7 @@ class GarblerDaemon(Daemon):
                 elif kind == "error" and "sid" in msg:
                     task = tasks.get(msg["sid"])
                     if task is not None:
-                        task.cancel()
+                        task.cancel(CANCELLED_BY_CLIENT)
                 elif kind == "health_request":
                     await conn.send(self.health())
                 elif kind == "bye":
@@ -116,7 +125,7 @@ class GarblerDaemon(Daemon):
                   reason=str(exc))
         finally:
             for task in tasks.values():
-                task.cancel()
+                task.cancel(CLIENT_LEFT)
             await asyncio.gather(*tasks.values(), return_exceptions=True)
 
     def _start(self, conn: Connection, req: dict[str, Any], size: int,
@@ -148,7 +157,7 @@ class GarblerDaemon(Daemon):
                 check_delta(req["delta"])
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
-            scheme = scheme_id(req.get("scheme", "halfgates"))
+            scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
             block, frame = frame_plan(schedule, scheme)
             garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
                                              req["delta"], req["key"], block, frame)
@@ -173,8 +182,11 @@ class GarblerDaemon(Daemon):
                 replied = self._reply(client, sid, garbler, sent, {
                     "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
                     "lanes": float(getattr(garbler, "lanes", 1))})
-                if not answered:  # the client need not wait for this
-                    await self._verdict(evaluator, sid)
+                if not answered:  # the client need not wait for this; a garbled-ahead
+                    # session's verdict comes once its client's labels did, which the
+                    # evaluator awaits up to its --idle-timeout while the client is busy
+                    await self._verdict(evaluator, sid, self.options.session_timeout
+                                        + self.options.idle_timeout)
             except BaseException:
                 evaluator.abort()
                 raise
@@ -191,8 +203,9 @@ class GarblerDaemon(Daemon):
             record.update(self._fail(client, sid, PEER_LOST, f"lost the evaluator: {exc}"))
         except TimeoutError as exc:
             record.update(self._fail(client, sid, TIMEOUT, str(exc)))
-        except asyncio.CancelledError:
-            record.update(self._fail(client, sid, ABORTED, "the garbler is shutting down"))
+        except asyncio.CancelledError as exc:  # the reason is in the cancel, if any
+            record.update(self._fail(client, sid, ABORTED,
+                                     exc.args[0] if exc.args else SHUTTING_DOWN))
             raise
         except Exception as exc:  # a bug: the client must still hear of it
             self.log.exception("session_bug", extra={"snail_fields": {"sid": sid.hex()}})
@@ -236,7 +249,7 @@ class GarblerDaemon(Daemon):
         sid, timeout = req["sid"], self.options.session_timeout
         sent = evaluator.write(messages.make("session_start", sid=sid, circuit=req["circuit"],
                                              hash=req["hash"],
-                                             scheme=req.get("scheme", "halfgates")))
+                                             scheme=req.get("scheme", DEFAULT_SCHEME)))
         frames = garbler.frames()
         pending = self.submit(next, frames, None)
         answered = False
@@ -253,17 +266,17 @@ class GarblerDaemon(Daemon):
                     raise TimeoutError(f"the evaluator took no tables for {timeout:g} s") \
                         from None
                 if not evaluator.idle:  # the evaluator spoke: done, or it gave up
-                    await self._verdict(evaluator, sid)
+                    await self._verdict(evaluator, sid, timeout)
                     answered = True
         finally:
             if not pending.done():  # let the garbling thread finish with the generator
                 await asyncio.gather(pending, return_exceptions=True)
         return sent, answered
 
-    async def _verdict(self, evaluator: Connection, sid: bytes) -> None:
-        """The evaluator's answer for ``sid``: ``done`` returns, ``error`` raises (a
-        ``bye`` means it is shutting down)."""
-        msg, _ = await evaluator.recv(self.options.session_timeout)
+    async def _verdict(self, evaluator: Connection, sid: bytes, timeout: float) -> None:
+        """The evaluator's answer for ``sid`` within ``timeout``: ``done`` returns,
+        ``error`` raises (a ``bye`` means it is shutting down)."""
+        msg, _ = await evaluator.recv(timeout)
         if msg["t"] == "error":
             raise RemoteError(msg["code"], msg["message"], msg.get("sid"))
         if msg["t"] == "bye":

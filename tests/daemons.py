@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
+from pathlib import Path
 
-from snail_client.embedded import Services, embedded_services
+from snail_client.embedded import Daemon, Services, embedded_services
 
 
 def daemons_with(tmp_path_factory, *flags: str) -> Iterator[Services]:
@@ -12,3 +17,30 @@ def daemons_with(tmp_path_factory, *flags: str) -> Iterator[Services]:
     cache = tmp_path_factory.mktemp("cache")
     with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)}, extra_args=flags) as svc:
         yield svc
+
+
+def start_patched_evaluator(script: str, log: Path, *flags: str) -> Daemon:
+    """An evaluator run by ``script`` (which patches the daemon, then calls its main)
+    listening on loopback with ``flags``: to make a race of the real service happen
+    deterministically."""
+    with open(log, "wb") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", script, "--listen", "127.0.0.1:0", "--log-level", "info",
+             *flags],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        for line in log.read_text().splitlines():
+            entry = json.loads(line)
+            if entry.get("event") == "listening":
+                return Daemon("evaluator", proc, f"127.0.0.1:{entry['port']}", log)
+        assert proc.poll() is None, log.read_text()
+        time.sleep(0.05)
+    proc.kill()
+    raise AssertionError(f"the evaluator did not start: {log.read_text()}")
+
+
+def session_outcomes(log: Path) -> list[str]:
+    """The outcome of every session line in a daemon's log, in order."""
+    return [json.loads(line)["outcome"] for line in log.read_text().splitlines()
+            if '"event": "session"' in line]

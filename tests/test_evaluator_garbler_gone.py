@@ -7,18 +7,15 @@ either way; it must get it, and the session must end."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from snail_client.embedded import Daemon, start_daemon
+from snail_client.embedded import start_daemon
 from snail_client.secure import SecureRunner
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net.tls import make_certs
+from tests.daemons import session_outcomes, start_patched_evaluator
 
 # the evaluator, with the garbler's connection lost once each session's evaluation is done
 # and the garbler has answered the client (deterministically, where under load the
@@ -42,27 +39,10 @@ main(prog_name="snail-evaluator")
 CIRCUIT = "ops/fmul-x4"
 
 
-def _evaluator(tls_dir: Path, log: Path) -> Daemon:
-    with open(log, "wb") as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-c", LOSES_THE_GARBLER, "--listen", "127.0.0.1:0",
-             "--tls-dir", str(tls_dir), "--log-level", "info"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        for line in log.read_text().splitlines():
-            entry = json.loads(line)
-            if entry.get("event") == "listening":
-                return Daemon("evaluator", proc, f"127.0.0.1:{entry['port']}", log)
-        assert proc.poll() is None, log.read_text()
-        time.sleep(0.05)
-    proc.kill()
-    raise AssertionError(f"the evaluator did not start: {log.read_text()}")
-
-
 def test_the_client_gets_its_result_when_the_garbler_stops_waiting(tmp_path):
     tls_dir = make_certs(tmp_path / "tls")
-    evaluator = _evaluator(tls_dir, tmp_path / "evaluator.log")
+    evaluator = start_patched_evaluator(LOSES_THE_GARBLER, tmp_path / "evaluator.log",
+                                        "--tls-dir", str(tls_dir))
     garbler = None
     try:
         garbler = start_daemon("garbler", ["--evaluator", evaluator.address, "--tls-dir",
@@ -79,9 +59,7 @@ def test_the_client_gets_its_result_when_the_garbler_stops_waiting(tmp_path):
                 np.testing.assert_array_equal(outputs, evaluate_bits(schedule, bits[None])[0])
             health = runner.health("evaluator")["sessions"]
         assert health["active"] == 0 and health["done"] == 2
-        sessions = [json.loads(line) for line in evaluator.log.read_text().splitlines()
-                    if '"event": "session"' in line]
-        assert [s["outcome"] for s in sessions] == ["ok", "ok"]
+        assert session_outcomes(evaluator.log) == ["ok", "ok"]
     finally:
         if garbler is not None:
             garbler.stop()

@@ -24,6 +24,7 @@ from snail_client.cli import main
 from snail_client.embedded import start_daemon
 from snail_client.secure import AsyncSecureRunner, SecureRunner, ServiceError
 from snail_common.circuit import evaluate_bits, registry
+from snail_common.gc.labels import fresh_delta, labels_to_bytes
 from snail_common.net import errors, messages, tls
 from snail_common.net.frames import encode_bytes
 
@@ -267,6 +268,27 @@ def test_a_cancelled_session_is_freed_and_logged_as_aborted(services):
         assert read_msg(sock)["sessions"]["active"] == 0
     lines = [s for s in _sessions(services.evaluator.log) if s["sid"] == sid.hex()]
     assert [(s["peer"], s["outcome"]) for s in lines] == [("client", errors.ABORTED)]
+
+
+def test_a_session_the_client_cancels_is_logged_by_the_garbler_as_cancelled(services):
+    """Not as "the garbler is shutting down", which it logged for any cancel before."""
+    request = dict(circuit=CIRCUIT, hash=registry.compiled(CIRCUIT)[0].content_hash(),
+                   seed=b"\1" * 16, delta=labels_to_bytes(fresh_delta()), key=b"\2" * 16)
+    sid = b"\10" * 16
+    with raw(services.garbler_addr, services.tls_dir) as sock:
+        hello(sock)
+        # no input labels ever reach the evaluator: the session waits there for them
+        sock.sendall(encode_bytes(messages.make("garble_request", sid=sid, **request)))
+        for _ in range(2):  # the output zero-labels and stats: the tables are streamed
+            assert read_msg(sock)["sid"] == sid
+        sock.sendall(encode_bytes(messages.error(errors.ABORTED, "changed my mind", sid)))
+        answer = read_msg(sock)
+        assert (answer["code"], answer["sid"]) == (errors.ABORTED, sid)
+        assert answer["message"] == "cancelled by the client"
+    time.sleep(0.3)  # the log line
+    lines = [s for s in _sessions(services.garbler.log) if s["sid"] == sid.hex()]
+    assert [(s["outcome"], s["reason"]) for s in lines] == [
+        (errors.ABORTED, "cancelled by the client")]
     opened = [json.loads(line) for line in services.evaluator.log.read_text().splitlines()
               if '"connection_open"' in line]
     assert {entry["peer"] for entry in opened} >= {"client", "garbler", "robot7"}

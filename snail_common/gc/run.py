@@ -10,10 +10,11 @@ from .decode import decode_output_labels
 from .evaluator import evaluate_stream
 from .garbler import Garbler
 from .labels import active_input_labels, fresh_delta, fresh_seed
+from .stream import DEFAULT_SCHEME
 
 
 def garbled_run(schedule: Schedule, input_bits: np.ndarray,
-                scheme: str = "halfgates") -> np.ndarray:
+                scheme: str = DEFAULT_SCHEME) -> np.ndarray:
     """Garble, evaluate and decode with a fresh seed and offset: bool (n_inputs,) ->
     bool (n_outputs,); a batch (L, n_inputs) -> (L, n_outputs), one garbled run per row."""
     bits = np.asarray(input_bits, dtype=bool)

@@ -29,6 +29,7 @@ SCHEME_HALF_GATES = 1
 SCHEME_THREE_HALVES = 2
 SCHEMES = {"halfgates": SCHEME_HALF_GATES, "threehalves": SCHEME_THREE_HALVES}
 SCHEME_NAMES = {v: k for k, v in SCHEMES.items()}
+DEFAULT_SCHEME = SCHEME_NAMES[SCHEME_HALF_GATES]  # what a peer that names none means
 BYTES_PER_AND = {SCHEME_HALF_GATES: 32}  # half-gates only: three-halves has no whole number
 CONTROL_BITS = 5  # three-halves control bits per AND gate
 FRAME_BYTES = 1 << 20
