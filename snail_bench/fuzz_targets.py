@@ -8,6 +8,7 @@ Hangs and unbounded allocation are caught by the fuzzer's time and memory limits
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import json
 import os
@@ -144,17 +145,34 @@ _TLS_DIRTY: set[str] = set()
 
 def certificates(data: bytes) -> None:
     """A TLS folder whose CA, certificate or key file is ``data[1:]`` (``data[0]`` picks
-    which; a PEM seed is kept whole): loaded as a client's context and used to issue a
-    client certificate, as a device and ``snail-client certs --client`` do."""
+    which; a PEM seed is kept whole), or with bit 3 of ``data[0]`` set, the valid file
+    with its DER patched by ``data[1:]`` (see ``_patched``): loaded as a client's context
+    and used to issue a client certificate, as a device and ``snail-client certs
+    --client`` do."""
     folder = _tls_folder()
     pick = data[0] if data else 0
     name = _TLS_FILES[pick % len(_TLS_FILES)]
     _TLS_DIRTY.add(name)
-    (folder / name).write_bytes(data[1:])
+    (folder / name).write_bytes(_patched(_TLS_VALID[name], data[1:]) if pick & 8
+                                else data[1:])
     if pick & 4:
         add_client(folder, "robot")
     else:
         client_context(folder, "client")
+
+
+def _patched(pem: bytes, patch: bytes) -> bytes:
+    """``pem`` with bytes of its DER body XORed by ``patch``'s (offset: 2 bytes, mask)
+    triples, re-encoded as PEM. The parsers are C (OpenSSL), where atheris sees no
+    coverage: without this, libFuzzer shrinks its corpus to short garbage and almost no
+    input is a near-valid certificate or key."""
+    lines = pem.strip().split(b"\n")
+    der = bytearray(base64.b64decode(b"".join(lines[1:-1])))
+    for k in range(0, len(patch) - 2, 3):
+        der[int.from_bytes(patch[k:k + 2], "little") % len(der)] ^= patch[k + 2]
+    body = base64.encodebytes(bytes(der)).replace(b"\n", b"")
+    wrapped = [body[i:i + 64] for i in range(0, len(body), 64)]
+    return b"\n".join([lines[0], *wrapped, lines[-1]]) + b"\n"
 
 
 # each parser with the errors it documents for bad input (TLSFileError is a ValueError)
@@ -224,7 +242,9 @@ def _tls_seeds() -> list[bytes]:
     for loading and once for issuing."""
     folder = _tls_folder()
     return [bytes([i + flag]) + (folder / name).read_bytes()
-            for flag in (0, 4) for i, name in enumerate(_TLS_FILES)]
+            for flag in (0, 4) for i, name in enumerate(_TLS_FILES)] + [
+        bytes([i + flag]) + bytes([k, 0, 1 << (k % 8)])
+        for flag in (8, 12) for i in range(len(_TLS_FILES)) for k in (10, 100, 200)]
 
 
 def _split(*parts: bytes) -> bytes:

@@ -76,3 +76,27 @@ def test_certs_command(tmp_path):
     assert tls.cert_path(out, "client").is_file()
     again = CliRunner().invoke(main, ["certs", str(out)])
     assert again.exit_code == 2 and "already holds keys" in again.output
+
+
+# found by the certificates fuzz target once it patched valid DER (``_patched``): each was
+# a cryptography exception other than TLSFileError out of ``snail-client certs --client``
+@pytest.mark.parametrize(("offset", "mask", "what"), [
+    (12, 0x01, "not a valid X509 version"),  # InvalidVersion is no ValueError
+    (127, 0x01, "subject"),  # the subject is parsed lazily, on first use
+])
+def test_a_damaged_ca_certificate_is_a_named_error_when_issuing(tmp_path, offset, mask, what):
+    from snail_bench.fuzz_targets import _patched
+
+    folder = tls.make_certs(tmp_path / "tls")
+    ca = folder / "ca.pem"
+    ca.write_bytes(_patched(ca.read_bytes(), offset.to_bytes(2, "little") + bytes([mask])))
+    with pytest.raises(tls.TLSFileError, match=f"holds no usable CA.*{what}"):
+        tls.add_client(folder, "robot")
+
+
+def test_a_ca_key_of_another_ca_is_refused_when_issuing(tmp_path):
+    folder = tls.make_certs(tmp_path / "tls")
+    other = tls.make_certs(tmp_path / "other")
+    (folder / "ca.key").write_bytes((other / "ca.key").read_bytes())
+    with pytest.raises(tls.TLSFileError, match="do not belong together"):
+        tls.add_client(folder, "robot")

@@ -144,13 +144,24 @@ def add_client(directory: str | Path, name: str, days: int = VALID_DAYS) -> Path
     try:
         ca_key = serialization.load_pem_private_key(key_path(out, CA).read_bytes(), None)
         ca_cert = x509.load_pem_x509_certificate(cert_path(out, CA).read_bytes())
-    except (OSError, ValueError, UnsupportedAlgorithm) as exc:
+        ca_name = ca_cert.subject  # parsed lazily: a damaged name fails here
+        ca_public = ca_cert.public_key()
+    except (OSError, ValueError, UnsupportedAlgorithm, x509.InvalidVersion) as exc:
         raise TLSFileError(f"{out} holds no usable CA (ca.pem and ca.key: "
                            f"{getattr(exc, 'strerror', None) or exc}; {_REMEDY})") from None
     if not isinstance(ca_key, ec.EllipticCurvePrivateKey):
         raise TLSFileError(f"{key_path(out, CA)} is not an EC key made by snail-client certs")
-    _issue(out, name, "client", name, ca_key, ca_cert.subject, days, None)
+    if _public_der(ca_public) != _public_der(ca_key.public_key()):
+        raise TLSFileError(f"{cert_path(out, CA)} and {key_path(out, CA)} do not belong "
+                           f"together: certificates issued with them would not verify "
+                           f"({_REMEDY})")
+    _issue(out, name, "client", name, ca_key, ca_name, days, None)
     return cert_path(out, name)
+
+
+def _public_der(key: ec.EllipticCurvePublicKey) -> bytes:
+    return key.public_bytes(serialization.Encoding.DER,
+                            serialization.PublicFormat.SubjectPublicKeyInfo)
 
 
 class TLSFileError(ValueError):
