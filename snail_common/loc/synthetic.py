@@ -21,13 +21,15 @@ def _unit(rng: np.random.Generator) -> np.ndarray:
 
 def random_scene(rng: np.random.Generator, n: int, *, noise_px: float = 0.5,
                  rotation_deg: tuple[float, float] = (2.0, 5.0),
-                 translation_frac: float = 0.05) -> Problem:
+                 translation_frac: float = 0.05, planar: bool = False) -> Problem:
     """A Problem with reference_pose = the pose the points were generated from.
 
     Points fill a random box in the camera's view: pixel positions uniform inside the image
     margins, depths uniform in [d, d + depth_range] with d in [2, 5] and depth_range in
-    [0.5, 2]; the world frame is the camera frame moved by a random pose (rotation up to
-    0.5 rad), so the true rvec/tvec are as general as the examples'.
+    [0.5, 2]; ``planar`` puts them instead on one plane at depth d on the optical axis,
+    tilted 0-45 degrees (a tag or a wall: the case where PnP is least well conditioned).
+    The world frame is the camera frame moved by a random pose (rotation up to 0.5 rad),
+    so the true rvec/tvec are as general as the examples'.
     """
     if n < 4:
         raise ValueError(f"n: need at least 4 points, got {n}")
@@ -37,8 +39,13 @@ def random_scene(rng: np.random.Generator, n: int, *, noise_px: float = 0.5,
     pix = rng.uniform([MARGIN * width, MARGIN * height],
                       [(1 - MARGIN) * width, (1 - MARGIN) * height], size=(n, 2))
     near = rng.uniform(2.0, 5.0)
-    depth = rng.uniform(near, near + rng.uniform(0.5, 2.0), size=n)
-    cam = np.column_stack([(pix - K[:2, 2]) / f, np.ones(n)]) * depth[:, None]
+    rays = np.column_stack([(pix - K[:2, 2]) / f, np.ones(n)])
+    if planar:  # ray-plane intersection: normal . x = normal . (0, 0, near)
+        normal = so3_exp(_unit(rng) * np.deg2rad(rng.uniform(0.0, 45.0)))[:, 2]
+        depth = near * normal[2] / (rays @ normal)
+    else:
+        depth = rng.uniform(near, near + rng.uniform(0.5, 2.0), size=n)
+    cam = rays * depth[:, None]
     rvec = _unit(rng) * rng.uniform(0.0, 0.5)
     R = so3_exp(rvec)
     tvec = np.array([0.0, 0.0, near + 0.5]) + rng.normal(scale=0.2, size=3)
