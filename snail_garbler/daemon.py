@@ -58,6 +58,7 @@ from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
 
 from .lanes import LaneBatcher, LaneView
+from .owner import OwnerInputs
 
 MAX_IDLE = 8  # pooled idle connections to the evaluator
 # why a session task was cancelled, as its log line and the client's error say
@@ -95,6 +96,7 @@ class GarblerDaemon(Daemon):
         self.client_ctx = client_ctx  # TLS context for the link to the evaluator
         self.idle: list[Connection] = []
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
+        self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout)
 
     async def serve(self, conn: Connection) -> None:
         tasks: dict[bytes, asyncio.Task] = {}
@@ -151,12 +153,13 @@ class GarblerDaemon(Daemon):
             return
         sent, running = 0, False
         try:
-            _, schedule = await self.circuit(req["circuit"], req["hash"])
+            circuit, schedule = await self.circuit(req["circuit"], req["hash"])
             record["n_and"] = schedule.n_and
             try:
                 check_delta(req["delta"])
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
+            await self.owners.feed(req, circuit, self.options.session_timeout)
             scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
             block, frame = frame_plan(schedule, scheme)
             garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
@@ -302,6 +305,7 @@ class GarblerDaemon(Daemon):
             conn.abort()
 
     async def shutdown_extra(self) -> None:
+        await self.owners.close()
         await asyncio.gather(*(c.close(messages.make("bye")) for c in self.idle),
                              return_exceptions=True)
         self.idle.clear()

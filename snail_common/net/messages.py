@@ -32,7 +32,8 @@ garbler -> mapowner          per invocation ``map_invocation`` {sid, frame, coun
                              ``ot_ext_y`` {sid}; the map owner answers ``done`` or ``error``
 mapowner -> evaluator        ``owner_labels`` chunks: the labels of the map owner's wires
                              (the last ``count`` input wires of the circuit)
-``garble_request`` carries the ``frame`` handle when the circuit takes map-owner inputs.
+``garble_request`` carries the ``frame`` handle and the ``map_owner`` address when the
+circuit takes map-owner inputs.
 
 The garbler never receives input labels and the evaluator never receives a seed or delta:
 there is no message carrying them to the wrong role. The map owner never receives a 2D
@@ -154,7 +155,8 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash},
                       {"scheme": scheme}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
-                        "delta": key16, "key": key16}, {"scheme": scheme, "frame": key16}),
+                        "delta": key16, "key": key16},
+                       {"scheme": scheme, "frame": key16, "map_owner": text(MAX_ADDRESS)}),
     "input_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
     "tables": ({"sid": sid, "data": blob()}, {}),
     "done": ({"sid": sid}, {}),
