@@ -34,7 +34,7 @@ import numpy as np
 from snail_common.loc.owner import PublishedMap
 from snail_common.net import messages
 from snail_common.net.chunks import write_labels
-from snail_common.net.conn import Connection, connect, parse_addr
+from snail_common.net.conn import Connection, connect, format_addr, parse_addr
 from snail_common.net.errors import (
     BAD_REQUEST,
     PEER_LOST,
@@ -79,7 +79,7 @@ class MapOwnerDaemon(Daemon):
                   address=str(conn.peer), peer_role=conn.peer_role, code=exc.code,
                   reason=exc.message)
             await conn.close(messages.error(exc.code, exc.message))
-        except ConnectionClosed as exc:
+        except (ConnectionClosed, RemoteError, TimeoutError) as exc:
             event(self.log, "peer_gone", peer=conn.peer_name, address=str(conn.peer),
                   peer_role=conn.peer_role, reason=str(exc))
 
@@ -152,16 +152,11 @@ class MapOwnerDaemon(Daemon):
 
     # ---- the garbler: the pads into each invocation -----------------------------------
     async def _serve_garbler(self, conn: Connection) -> None:
-        ot: ExtReceiver | None = None
+        ot: list[ExtReceiver] = []  # this link's OT session, once its base OTs are done
         while True:
             msg, size = await self.next_message(conn, lambda: False)
             kind = msg["t"]
             if kind == "map_invocation":
-                if ot is None:
-                    ot = ExtReceiver()
-                    conn.write(messages.make("ot_base_a", a=ot.start()["a"]))
-                    reply = await conn.expect("ot_base_b", self.options.session_timeout)
-                    await self.work(ot.base_done, ot_part(reply))
                 await self._invocation(conn, ot, msg, size)
             elif kind == "health_request":
                 await conn.send(self.health())
@@ -171,50 +166,76 @@ class MapOwnerDaemon(Daemon):
                 raise ProtocolError(UNEXPECTED, f"the garbler may not send {kind} to the "
                                                 "map owner")
 
-    async def _invocation(self, conn: Connection, ot: ExtReceiver, msg: dict[str, Any],
-                          size: int) -> None:
+    def _pad_bits(self, msg: dict[str, Any]) -> tuple[np.ndarray, tuple[str, int]]:
+        """The choice bits of an invocation (its frame's pads) and the evaluator's
+        address; ProtocolError naming the field that does not fit."""
+        pads = self.frames.get(msg["frame"])
+        if pads is None:
+            raise ProtocolError(BAD_REQUEST, "field 'frame': no selection of this map owner "
+                                             "has that handle (unknown or forgotten)")
+        bits = pad_bits(pads)
+        if msg["count"] != len(bits):
+            raise ProtocolError(BAD_REQUEST, f"field 'count': the frame has {len(bits)} "
+                                             f"pad bits, not {msg['count']}")
+        try:
+            return bits, parse_addr(msg["evaluator"])
+        except ValueError as exc:
+            raise ProtocolError(BAD_REQUEST, f"field 'evaluator': {exc}") from None
+
+    async def _base_ots(self, conn: Connection, ot: list[ExtReceiver]) -> ExtReceiver:
+        """The link's OT session: base OTs (the map owner as their sender) the first time."""
+        if not ot:
+            receiver = ExtReceiver()
+            conn.write(messages.make("ot_base_a", a=receiver.start()["a"]))
+            reply = await conn.expect("ot_base_b", self.options.session_timeout)
+            await self.work(receiver.base_done, ot_part(reply))
+            ot.append(receiver)
+        return ot[0]
+
+    async def _invocation(self, conn: Connection, ot: list[ExtReceiver],
+                          msg: dict[str, Any], size: int) -> None:
         """Take the labels of this frame's pad bits by OT and forward them."""
         sid, t0 = msg["sid"], time.monotonic()
         record = {"sid": sid, "circuit": NO_CIRCUIT, "n_and": 0, "bytes_in": size,
                   "bytes_out": 0, "seconds": 0.0, "outcome": OK}
         self.admit()
+        started = False  # once OT messages flow, a failure leaves this link out of step
         try:
-            pads = self.frames.get(msg["frame"])
-            if pads is None:
-                raise ProtocolError(BAD_REQUEST, "field 'frame': no selection of this "
-                                                 "map owner has that handle (unknown or "
-                                                 "forgotten)")
-            bits = pad_bits(pads)
-            if msg["count"] != len(bits):
-                raise ProtocolError(BAD_REQUEST, f"field 'count': the frame has "
-                                                 f"{len(bits)} pad bits, not {msg['count']}")
-            try:
-                evaluator = parse_addr(msg["evaluator"])
-            except ValueError as exc:
-                raise ProtocolError(BAD_REQUEST, f"field 'evaluator': {exc}") from None
-            request = ot.request(bits)
+            bits, evaluator = self._pad_bits(msg)
+            started = True
+            receiver = await self._base_ots(conn, ot)
+            request = receiver.request(bits)
             record["bytes_out"] += conn.write(messages.make("ot_ext_u", sid=sid, **{
                 k: request[k] for k in ("start", "m", "u")}))
             answer = await conn.expect("ot_ext_y", self.options.session_timeout)
             if answer.get("sid") != sid:
                 raise ProtocolError(UNEXPECTED, "an OT answer for another session")
-            labels = await self.work(ot.receive, ot_part(answer))
-            link = await self._evaluator(evaluator)
-            record["bytes_out"] += write_labels(link, "owner_labels", sid, labels)
-            await link.drain()
+            labels = await self.work(receiver.receive, ot_part(answer))
+            record["bytes_out"] += await self._forward(evaluator, sid, labels)
             record["bytes_out"] += conn.write(messages.make("done", sid=sid))
         except ProtocolError as exc:
             record.update(outcome=exc.code, reason=exc.message)
             conn.post(messages.error(exc.code, exc.message, sid))
-            if exc.code == UNEXPECTED:
-                raise  # the OT stream is out of step: this connection cannot go on
-        except (ConnectionClosed, RemoteError) as exc:
+            if started:
+                raise
+        except (ConnectionClosed, RemoteError, TimeoutError) as exc:
             record.update(outcome=PEER_LOST, reason=str(exc))
-            conn.post(messages.error(PEER_LOST, f"the map owner lost the evaluator: {exc}",
-                                     sid))
+            raise
         finally:
             record["seconds"] = time.monotonic() - t0
             self.finish("", record)
+
+    async def _forward(self, evaluator: tuple[str, int], sid: bytes,
+                       labels: np.ndarray) -> int:
+        """Send the evaluator the labels of session ``sid``; the bytes sent."""
+        try:
+            link = await self._evaluator(evaluator)
+            sent = write_labels(link, "owner_labels", sid, labels)
+            await link.drain()
+        except ConnectionClosed as exc:
+            raise ProtocolError(PEER_LOST, f"the map owner cannot reach the evaluator at "
+                                           f"{format_addr(*evaluator)}: {exc}") from None
+        return sent
 
     async def _evaluator(self, addr: tuple[str, int]) -> Connection:
         """The link to the evaluator at ``addr`` (one, reused; reopened when it broke)."""
