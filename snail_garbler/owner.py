@@ -24,6 +24,7 @@ from snail_common.net import messages
 from snail_common.net.conn import Connection, connect, format_addr, parse_addr
 from snail_common.net.errors import (
     BAD_REQUEST,
+    PEER_LOST,
     UNEXPECTED,
     ConnectionClosed,
     ProtocolError,
@@ -50,7 +51,7 @@ class OwnerInputs:
     async def feed(self, req: dict[str, Any], circuit: Circuit, timeout: float) -> int:
         """Give the map owner its labels for session ``req`` (nothing to do for a circuit
         without map-owner wires); the bytes sent to it. ProtocolError for a request that
-        does not fit the circuit, RemoteError for the map owner's refusal."""
+        does not fit the circuit, the map owner's refusal or a lost map owner."""
         count = owner_bits(circuit)
         if not count:
             if "frame" in req or "map_owner" in req:
@@ -70,6 +71,12 @@ class OwnerInputs:
         conn, ot = await self._acquire(addr)
         try:
             sent = await self._run(conn, ot, req, count, x0, x1, timeout)
+        except RemoteError as exc:  # the client hears it as the map owner's, not the evaluator's
+            conn.abort()
+            raise ProtocolError(exc.code, exc.message) from None
+        except ConnectionClosed as exc:
+            conn.abort()
+            raise ProtocolError(PEER_LOST, f"lost the map owner: {exc}") from None
         except BaseException:
             conn.abort()
             raise
@@ -110,7 +117,7 @@ class OwnerInputs:
             conn = await connect(*addr, self.ctx, "garbler", "mapowner",
                                  self.handshake_timeout)
         except ConnectionClosed as exc:
-            raise ConnectionClosed(f"map owner: {exc}") from None
+            raise ProtocolError(PEER_LOST, str(exc)) from None
         return conn, ExtSender()
 
     def _release(self, addr: tuple[str, int], link: Link) -> None:

@@ -11,6 +11,7 @@ evaluator, snail-mapd) over TLS on loopback.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -22,18 +23,23 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from shared_paths import EXAMPLES
+from test_service_e2e import hello, raw, read_msg
 
 from snail_client.cli import main as client
 from snail_client.embedded import Daemon
 from snail_client.localize import GarbledBackend
 from snail_client.mapowner import MapOwnerLink
 from snail_client.secure import SecureRunner, ServiceError
+from snail_common.circuit import registry
+from snail_common.circuit.ir import FIRST_INPUT
+from snail_common.families import register_all
 from snail_common.loc import mapfile, owner
 from snail_common.loc.backends import CircuitBackend
 from snail_common.loc.geometry import pose_from_rvec_tvec
 from snail_common.loc.pipeline import Options
 from snail_common.loc.problem import ProblemError, load_problem
-from snail_common.net import frames
+from snail_common.net import errors, frames, messages
+from snail_common.net.frames import encode_bytes
 from snail_common.net.tls import make_certs
 
 RECORDER = """
@@ -222,7 +228,7 @@ def test_a_frame_the_map_owner_does_not_know_is_refused_by_name(servers, tmp_pat
             with pytest.raises(ProblemError, match=r"map_ids\[0\]"):
                 link.select(np.array([int(published.ids.max()) + 1, *frame.map_ids[1:]]))
             runner.use_frame(bytes(16), mapd.address)  # never issued
-            with pytest.raises(ServiceError, match="frame"):
+            with pytest.raises(ServiceError, match="map owner reported: field 'frame'"):
                 owner.localize_shared(frame, published, np.zeros((6, 3), np.uint32),
                                       OPTIONS, GarbledBackend(runner))
     finally:
@@ -276,3 +282,28 @@ def test_a_frame_naming_an_id_the_map_lacks_is_exit_2(tmp_path):
                                       str(map_path), "--backend", "cleartext"])
     assert out.exit_code == 2 and "map_ids[2]" in out.stderr
     assert out.stderr.count("\n") == 1
+
+
+def test_the_evaluator_takes_map_owner_wires_from_the_map_owner_only(servers):
+    _, tls_dir, _, evaluator = servers
+    circuit = "loc/lm-sil-ldlt-n6-mo"
+    register_all()
+    iface = registry.interface(circuit)
+    everything = FIRST_INPUT + iface.n_inputs
+    sid = bytes(range(16))
+    with contextlib.closing(raw(evaluator.address, tls_dir)) as sock:
+        hello(sock)
+        sock.sendall(encode_bytes(messages.make("owner_labels", sid=sid, start=0, total=1,
+                                                labels=bytes(16))))
+        reply = read_msg(sock)
+        assert reply["code"] == errors.UNEXPECTED and "owner_labels" in reply["message"]
+    with contextlib.closing(raw(evaluator.address, tls_dir)) as sock:
+        hello(sock)
+        sock.sendall(encode_bytes(messages.make("session_start", sid=sid, circuit=circuit,
+                                                hash=iface.content_hash)))
+        sock.sendall(encode_bytes(messages.make("input_labels", sid=sid, start=0,
+                                                total=everything,
+                                                labels=bytes(16 * everything))))
+        reply = read_msg(sock)
+        assert reply["t"] == "error" and reply["sid"] == sid
+        assert f"needs {everything - 96 * 6} labels" in reply["message"]
