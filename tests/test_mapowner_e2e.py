@@ -85,9 +85,10 @@ def received(root: Path, role: str) -> list[dict]:
         return list(msgpack.Unpacker(f, raw=False))
 
 
-def scene(m: int) -> tuple[mapfile.MapPoints, mapfile.Frame, object]:
-    """The shared n = 6 example as a frame, its points hidden among m map points."""
-    problem = load_problem(EXAMPLES / "synthetic_n6.json")
+def scene(m: int, example: str = "synthetic_n6"
+          ) -> tuple[mapfile.MapPoints, mapfile.Frame, object]:
+    """A shared example as a frame, its points hidden among m map points."""
+    problem = load_problem(EXAMPLES / f"{example}.json")
     rng = np.random.default_rng(m)
     ids = rng.permutation(1 << 24)[:m].astype(np.int64)
     where = rng.permutation(m)[:problem.n]  # the frame's points anywhere in the map
@@ -116,11 +117,11 @@ def servers(tmp_path_factory):
         daemon.stop()
 
 
-def run_frame(servers, m: int, tmp_path: Path):
+def run_frame(servers, m: int, tmp_path: Path, example: str = "synthetic_n6"):
     """Localize the example against a map of ``m`` points held by a fresh snail-mapd;
     returns the garbled result, the oracle's, and what the map owner holds."""
     _, tls_dir, garbler, evaluator = servers
-    points, frame, problem = scene(m)
+    points, frame, problem = scene(m, example)
     mapd = start_recorded("mapd", tmp_path, "--map", str(write_map(points, tmp_path /
                                                                     "map.json")),
                           "--tls-dir", str(tls_dir))
@@ -152,6 +153,13 @@ def test_the_pose_equals_the_cleartext_runs_bit_for_bit(servers, tmp_path, m):
     assert np.linalg.norm(pose_from_rvec_tvec(got.rvec, got.tvec).t - ref.t) < 0.05
     assert traffic["client_to_mapowner"] < 2_000 + 64 * m.bit_length()
     assert traffic["mapowner_to_client"] > 12 * 6 * m  # the whole padded table
+
+
+@pytest.mark.parametrize("example", ["apriltag_4corners", "synthetic_n12", "synthetic_n64"])
+def test_every_shared_example_up_to_64_points(servers, tmp_path, example):
+    got, want, _ = run_frame(servers, 1000, tmp_path, example)
+    assert np.array_equal(got.rvec, want.rvec) and np.array_equal(got.tvec, want.tvec)
+    assert got.cost == want.cost and got.converged
 
 
 def _blobs(messages: list[dict]) -> list[bytes]:
