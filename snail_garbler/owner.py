@@ -117,7 +117,7 @@ class OwnerInputs:
             conn = await connect(*addr, self.ctx, "garbler", "mapowner",
                                  self.handshake_timeout)
         except ConnectionClosed as exc:
-            raise ProtocolError(PEER_LOST, str(exc)) from None
+            raise ProtocolError(PEER_LOST, f"cannot reach the map owner: {exc}") from None
         return conn, ExtSender()
 
     def _release(self, addr: tuple[str, int], link: Link) -> None:

@@ -315,3 +315,27 @@ def test_the_evaluator_takes_map_owner_wires_from_the_map_owner_only(servers):
         reply = read_msg(sock)
         assert reply["t"] == "error" and reply["sid"] == sid
         assert f"needs {everything - 96 * 6} labels" in reply["message"]
+
+
+def test_a_map_owner_gone_mid_frame_fails_the_run_by_name(servers, tmp_path):
+    """The map owner stops after the selection: the next invocation fails at once with an
+    error naming the map owner (the pooled link is found dead, a new one is refused), and
+    the servers serve the next frame of a live map owner."""
+    _, tls_dir, garbler, evaluator = servers
+    points, frame, _ = scene(64)
+    map_path = write_map(points, tmp_path / "map.json")
+    mapd = start_recorded("mapd", tmp_path, "--map", str(map_path), "--tls-dir", str(tls_dir))
+    options = Options(solve="circuit", min_invocations=0)
+    with SecureRunner(garbler.address, evaluator.address, tls_dir) as runner:
+        with MapOwnerLink(mapd.address, tls_dir) as link:
+            published = link.open()
+            handle, masked = link.select(frame.map_ids)
+        runner.use_frame(handle, mapd.address)
+        backend = GarbledBackend(runner)
+        owner.localize_shared(frame, published, masked, options, backend)  # links pooled
+        mapd.stop()
+        start = time.monotonic()
+        with pytest.raises(ServiceError, match="map owner"):
+            owner.localize_shared(frame, published, masked, options, backend)
+        assert time.monotonic() - start < 10
+        assert runner.health("garbler")["role"] == "garbler"

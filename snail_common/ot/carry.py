@@ -16,7 +16,6 @@ import numpy as np
 from ..net.errors import BAD_REQUEST, ProtocolError
 from ..net.messages import DATA_CHUNK
 
-POINT_BYTES = 12  # a map point: three float32 words, little-endian
 OT_FIELDS = {"ot_base_a": ("a",), "ot_base_b": ("b",), "ot_ext_u": ("start", "m", "u"),
              "ot_ext_y": ("start", "y")}
 
@@ -27,13 +26,14 @@ def ot_part(msg: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def chunks(data: bytes, size: int = DATA_CHUNK) -> Iterator[tuple[int, bytes]]:
-    """(offset, piece) covering ``data`` in order; one empty piece for empty data."""
+    """(offset, piece) covering ``data`` in order; one empty piece for empty data (so a
+    receiver always gets a first message with the total)."""
     for offset in range(0, max(len(data), 1), size):
         yield offset, data[offset:offset + size]
 
 
 class BlobAssembler:
-    """The pieces of one blob of a announced length, strictly in order."""
+    """The pieces of one blob of an announced length, strictly in order."""
 
     def __init__(self, what: str, total: int, limit: int) -> None:
         if not 0 <= total <= limit:
