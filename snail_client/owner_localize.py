@@ -29,9 +29,9 @@ from snail_common.loc.problem import ProblemError
 from .embedded import connected, start_daemon
 from .localize import RESULT_FORMAT, GarbledBackend, Options
 from .mapowner import MapOwnerLink
-from .secure import LINKS
+from .secure import LINKS, OWNER_LINKS
 
-OWNER_LINKS = ("client_to_mapowner", "mapowner_to_client")
+MAP_OWNER_LINKS = ("client_to_mapowner", "mapowner_to_client", *OWNER_LINKS)
 
 
 def check(options: Options, map_owner: str | None, map_path: str | None) -> None:
@@ -64,7 +64,7 @@ def localize_frame(path: str, options: Options, map_owner: str | None,
             raise ProblemError(f"--map {map_path}: {exc}") from None
         backend = Float64Backend() if options.backend == "float64" else CircuitBackend()
         return record(localize_known(frame, published, values, options, backend), options,
-                      dict.fromkeys((*LINKS, *OWNER_LINKS), 0))
+                      dict.fromkeys((*LINKS, *MAP_OWNER_LINKS), 0))
     with connected(options.garbler, options.evaluator, options.tls_dir,
                    busy_wait=options.busy_wait, cert_name=options.cert_name,
                    link_timeout=options.link_timeout, scheme=options.scheme) as (
@@ -85,7 +85,7 @@ def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
     result = localize_shared(frame, published, masked, options, backend)
     after = {**backend.traffic(), **link.traffic}
     return record(result, options, {k: after.get(k, 0) - before.get(k, 0)
-                                    for k in (*LINKS, *OWNER_LINKS)})
+                                    for k in (*LINKS, *MAP_OWNER_LINKS)})
 
 
 @contextlib.contextmanager

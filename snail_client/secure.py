@@ -64,6 +64,7 @@ from .links import DEFAULT_LINK_TIMEOUT, Inbox, Link, ServiceError, labels_and_s
 
 LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
          "evaluator_to_client", "garbler_to_client")
+OWNER_LINKS = ("garbler_to_mapowner", "mapowner_to_garbler")  # map-owner circuits only
 DEFAULT_TIMEOUT = 300.0
 DEFAULT_BUSY_WAIT = 30.0  # seconds a run retries servers that answer busy
 BACKOFF_FIRST, BACKOFF_MAX = 0.05, 2.0
@@ -255,14 +256,16 @@ class AsyncSecureRunner:
         traffic = {"client_to_garbler": session.sent_g,
                    "client_to_evaluator": session.sent_e + sent_e,
                    "garbler_to_evaluator": int(g_stats["traffic"]["garbler_to_evaluator"]),
-                   "evaluator_to_client": e_in, "garbler_to_client": g_in}
+                   "evaluator_to_client": e_in, "garbler_to_client": g_in,
+                   **{k: int(v) for k, v in g_stats["traffic"].items()
+                      if k in OWNER_LINKS}}
         timing = {f"garbler_{k}": v for k, v in g_stats["timing"].items()}
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
         ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
         self.last = Invocation(outputs, traffic, wall, timing, ahead)
         self.invocations += 1
         for k, v in traffic.items():
-            self.totals[k] += v
+            self.totals[k] = self.totals.get(k, 0) + v
         return self.last
 
     async def _prepare(self, circuit_id: str) -> _Prepared:

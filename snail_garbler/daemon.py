@@ -159,7 +159,7 @@ class GarblerDaemon(Daemon):
                 check_delta(req["delta"])
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
-            await self.owners.feed(req, circuit, self.options.session_timeout)
+            owner = await self.owners.feed(req, circuit, self.options.session_timeout)
             scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
             block, frame = frame_plan(schedule, scheme)
             garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
@@ -184,7 +184,7 @@ class GarblerDaemon(Daemon):
                 t_streamed = time.monotonic()
                 replied = self._reply(client, sid, garbler, sent, {
                     "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
-                    "lanes": float(getattr(garbler, "lanes", 1))})
+                    "lanes": float(getattr(garbler, "lanes", 1))}, owner)
                 if not answered:  # the client need not wait for this; a garbled-ahead
                     # session's verdict comes once its client's labels did, which the
                     # evaluator awaits up to its --idle-timeout while the client is busy
@@ -224,14 +224,15 @@ class GarblerDaemon(Daemon):
             self.finish(peer, record)
 
     def _reply(self, client: Connection, sid: bytes, garbler: Garbler | LaneView, sent: int,
-               timing: dict[str, float]) -> int:
+               timing: dict[str, float], owner: dict[str, int]) -> int:
         """Queue the output zero-labels and stats for the client; the bytes queued (0 if
         it is gone)."""
         try:
             return (write_labels(client, "output_zero_labels", sid,
                                  garbler.output_zero_labels)
                     + client.write(messages.make("stats", sid=sid,
-                                                 traffic={"garbler_to_evaluator": sent},
+                                                 traffic={"garbler_to_evaluator": sent,
+                                                          **owner},
                                                  timing=timing)))
         except ConnectionClosed:
             event(self.log, "client_gone", peer=client.peer_name, sid=sid,

@@ -48,16 +48,17 @@ class OwnerInputs:
         self.handshake_timeout = handshake_timeout
         self.idle: dict[tuple[str, int], list[Link]] = {}
 
-    async def feed(self, req: dict[str, Any], circuit: Circuit, timeout: float) -> int:
+    async def feed(self, req: dict[str, Any], circuit: Circuit,
+                   timeout: float) -> dict[str, int]:
         """Give the map owner its labels for session ``req`` (nothing to do for a circuit
-        without map-owner wires); the bytes sent to it. ProtocolError for a request that
+        without map-owner wires); the bytes each way. ProtocolError for a request that
         does not fit the circuit, the map owner's refusal or a lost map owner."""
         count = owner_bits(circuit)
         if not count:
             if "frame" in req or "map_owner" in req:
                 raise ProtocolError(BAD_REQUEST, f"fields 'frame'/'map_owner': circuit "
                                                  f"{req['circuit']} takes no map-owner input")
-            return 0
+            return {}
         if "frame" not in req or "map_owner" not in req:
             raise ProtocolError(BAD_REQUEST, f"circuit {req['circuit']} takes the map "
                                              f"owner's input: 'frame' and 'map_owner' "
@@ -69,8 +70,9 @@ class OwnerInputs:
         x0 = derive_zero_labels(req["seed"], FIRST_INPUT + circuit.n_inputs)[-count:]
         x1 = x0 ^ labels_from_bytes(req["delta"])[0]
         conn, ot = await self._acquire(addr)
+        before = conn.bytes_out, conn.bytes_in
         try:
-            sent = await self._run(conn, ot, req, count, x0, x1, timeout)
+            await self._run(conn, ot, req, count, x0, x1, timeout)
         except RemoteError as exc:  # the client hears it as the map owner's, not the evaluator's
             conn.abort()
             raise ProtocolError(exc.code, exc.message) from None
@@ -81,13 +83,14 @@ class OwnerInputs:
             conn.abort()
             raise
         self._release(addr, (conn, ot))
-        return sent
+        return {"garbler_to_mapowner": conn.bytes_out - before[0],
+                "mapowner_to_garbler": conn.bytes_in - before[1]}
 
     async def _run(self, conn: Connection, ot: ExtSender, req: dict[str, Any], count: int,
-                   x0: np.ndarray, x1: np.ndarray, timeout: float) -> int:
+                   x0: np.ndarray, x1: np.ndarray, timeout: float) -> None:
         sid = req["sid"]
-        sent = conn.write(messages.make("map_invocation", sid=sid, frame=req["frame"],
-                                        count=count, evaluator=self.evaluator))
+        conn.write(messages.make("map_invocation", sid=sid, frame=req["frame"], count=count,
+                                 evaluator=self.evaluator))
         while True:
             msg, _ = await conn.recv(timeout)
             kind = msg["t"]
@@ -95,14 +98,13 @@ class OwnerInputs:
                 raise RemoteError(msg["code"], f"the map owner reported: {msg['message']}",
                                   msg.get("sid"))
             if kind == "ot_base_a":
-                sent += conn.write(messages.make("ot_base_b",
-                                                 b=ot.base_reply(ot_part(msg))["b"]))
+                conn.write(messages.make("ot_base_b", b=ot.base_reply(ot_part(msg))["b"]))
             elif kind == "ot_ext_u" and msg.get("sid") == sid:
                 answer = ot.respond_chosen(ot_part(msg), x0, x1)
-                sent += conn.write(messages.make("ot_ext_y", sid=sid, start=answer["start"],
-                                                 y=answer["y"]))
+                conn.write(messages.make("ot_ext_y", sid=sid, start=answer["start"],
+                                         y=answer["y"]))
             elif kind == "done" and msg["sid"] == sid:
-                return sent
+                return
             else:
                 raise ProtocolError(UNEXPECTED, f"the map owner sent {kind} mid-invocation")
 

@@ -266,6 +266,9 @@ def test_the_command_line_with_a_local_map_owner(tmp_path):
     assert g["setting"] == "map-owner" and g["status"] == "converged"
     assert (g["rvec"], g["tvec"], g["cost"]) == (c["rvec"], c["tvec"], c["cost"])
     assert g["traffic"]["mapowner_to_client"] > 0 and g["invocations"] >= 3
+    # per invocation the garbler answers 576 chosen OTs of two 16-byte labels each
+    assert g["traffic"]["garbler_to_mapowner"] >= 32 * 576 * g["invocations"]
+    assert g["traffic"]["mapowner_to_garbler"] >= 16 * 576 * g["invocations"]
     assert g["circuit"]["points"] == 6 and g["solve"] == "circuit"
 
 
