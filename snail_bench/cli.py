@@ -332,7 +332,7 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
 @click.option("--target", "targets", multiple=True, metavar="NAME",
               help="A parser to fuzz (repeatable; default: all of them: frames, message, "
                    "problem, sequence, camera, tagmap, colmap_bin, colmap_txt, revoked, "
-                   "certificates).")
+                   "certificates, map, frame).")
 @click.option("--runs", type=click.IntRange(1), default=1_000_000, show_default=True,
               help="Inputs per target.")
 @click.option("--seconds", type=click.IntRange(1), default=3600, show_default=True,

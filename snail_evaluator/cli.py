@@ -16,6 +16,7 @@ from snail_common.net.cli import (
 )
 from snail_common.net.conn import format_addr
 from snail_common.net.logs import setup
+from snail_common.net.parent import exit_with_parent
 from snail_common.net.service import run_daemon
 
 from .daemon import EvaluatorDaemon
@@ -28,6 +29,7 @@ from .daemon import EvaluatorDaemon
 def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> None:
     """Evaluator daemon: evaluates the garbler's table stream on each client's active input
     labels and returns the active output labels (see snail_evaluator.daemon)."""
+    exit_with_parent()
     logger = setup("evaluator", log_level_of(log_level, kwargs))
     try:
         ctx = tls.server_context(tls_dir, "evaluator")

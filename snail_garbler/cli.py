@@ -16,6 +16,7 @@ from snail_common.net.cli import (
 )
 from snail_common.net.conn import format_addr
 from snail_common.net.logs import setup
+from snail_common.net.parent import exit_with_parent
 from snail_common.net.service import run_daemon
 
 from .daemon import GarblerDaemon
@@ -31,6 +32,7 @@ def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_
          **kwargs) -> None:
     """Garbler daemon: garbles circuits from each client's seed and offset and streams the
     tables to the evaluator (see snail_garbler.daemon)."""
+    exit_with_parent()
     logger = setup("garbler", log_level_of(log_level, kwargs))
     try:
         server_ctx = tls.server_context(tls_dir, "garbler")

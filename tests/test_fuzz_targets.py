@@ -81,6 +81,9 @@ def test_json_nested_too_deeply_is_a_named_input_error(text, tmp_path, monkeypat
      b"awIBAQQgPdrR9A04i9Zh5jJP\nxxoZTZnpg2Zvc8wYp4EdXGBIBSihRANCAAS/OAkQOGDKSo1aXWp9LgnEotX7"
      b"ILIk\nguUY36dqOmD2WGSPFDRaHsJDmvsXvBQoqj+1sv7b/5IT4ehuD68eKZhZ\n-----END PRIVATE KEY"
      b"-----\n"),
+    # and, once the target patched valid DER, an X.509 version of 3 in the CA certificate
+    # was cryptography's InvalidVersion (no ValueError) when issuing a client certificate
+    ("certificates", bytes([0 + 4 + 8]) + (12).to_bytes(2, "little") + b"\x01"),
 ])
 def test_fuzz_findings_are_documented_errors(target, data, tmp_path, monkeypatch):
     monkeypatch.setattr(fuzz_targets, "_SCRATCH", tmp_path)

@@ -8,6 +8,7 @@ import stat
 import pytest
 from click.testing import CliRunner
 from cryptography import x509
+from cryptography.hazmat.primitives.serialization import Encoding
 
 from snail_client.cli import main
 from snail_common.net import tls
@@ -80,16 +81,23 @@ def test_certs_command(tmp_path):
 
 # found by the certificates fuzz target once it patched valid DER (``_patched``): each was
 # a cryptography exception other than TLSFileError out of ``snail-client certs --client``
-@pytest.mark.parametrize(("offset", "mask", "what"), [
-    (12, 0x01, "not a valid X509 version"),  # InvalidVersion is no ValueError
-    (127, 0x01, "subject"),  # the subject is parsed lazily, on first use
+def _subject_offset(pem: bytes) -> int:
+    cert = x509.load_pem_x509_certificate(pem)
+    # a self-signed CA: the issuer (parsed at once) has the same bytes, and comes first
+    return cert.public_bytes(Encoding.DER).rindex(cert.subject.public_bytes())
+
+
+@pytest.mark.parametrize(("where", "what"), [
+    (lambda pem: 12, "not a valid X509 version"),  # InvalidVersion is no ValueError
+    (_subject_offset, "subject"),  # the subject is parsed lazily, on first use
 ])
-def test_a_damaged_ca_certificate_is_a_named_error_when_issuing(tmp_path, offset, mask, what):
+def test_a_damaged_ca_certificate_is_a_named_error_when_issuing(tmp_path, where, what):
     from snail_bench.fuzz_targets import _patched
 
     folder = tls.make_certs(tmp_path / "tls")
     ca = folder / "ca.pem"
-    ca.write_bytes(_patched(ca.read_bytes(), offset.to_bytes(2, "little") + bytes([mask])))
+    pem = ca.read_bytes()
+    ca.write_bytes(_patched(pem, where(pem).to_bytes(2, "little") + b"\x01"))
     with pytest.raises(tls.TLSFileError, match=f"holds no usable CA.*{what}"):
         tls.add_client(folder, "robot")
 

@@ -1,0 +1,50 @@
+"""Embedded daemons end with the process that started them, even when it is SIGKILLed
+(before, they lived on, holding their ports and memory)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+STARTER = """
+import time
+from snail_client.embedded import embedded_services
+
+with embedded_services() as svc:
+    print(svc.garbler.process.pid, svc.evaluator.process.pid, flush=True)
+    time.sleep(600)
+"""
+
+
+def _running(pid: int) -> bool:
+    """Alive and not a zombie (an orphan's zombie may wait for a reaper)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "\nState:\tZ" not in status
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_daemons_exit_when_their_starter_is_killed():
+    starter = subprocess.Popen([sys.executable, "-c", STARTER], stdout=subprocess.PIPE,
+                               text=True)
+    try:
+        pids = [int(p) for p in starter.stdout.readline().split()]
+        assert len(pids) == 2 and all(_running(p) for p in pids)
+    finally:
+        starter.send_signal(signal.SIGKILL)
+        starter.wait()
+    deadline = time.monotonic() + 20
+    while any(_running(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [p for p in pids if _running(p)]
+    for pid in alive:
+        os.kill(pid, signal.SIGKILL)
+    assert not alive, "an embedded daemon outlived its SIGKILLed starter"
