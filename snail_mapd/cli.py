@@ -13,6 +13,7 @@ from snail_common.net import tls
 from snail_common.net.cli import LOG_LEVELS, address, fail, log_level_of
 from snail_common.net.conn import format_addr
 from snail_common.net.logs import setup
+from snail_common.net.parent import exit_with_parent
 from snail_common.net.service import Options, run_daemon
 
 from .daemon import MAX_FRAMES, MapOwnerDaemon
@@ -61,6 +62,7 @@ def main(listen: tuple[str, int], map_path: Path, tls_dir: str, max_frames: int,
     """Map-owner daemon: serves devices' oblivious selections of map points (each gets its
     points under pads only this daemon holds) and inputs the pads into every iteration
     circuit by oblivious transfer with the garbler (see snail_mapd.daemon)."""
+    exit_with_parent()
     logger = setup("mapowner", log_level_of(log_level, kwargs))
     try:
         published, values = owner_values(load_map(map_path))

@@ -6,8 +6,12 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -151,3 +155,43 @@ def test_a_selection_of_ragged_size_and_a_wrong_count_are_named(daemon, tls_dir)
         assert reply["code"] == errors.BAD_REQUEST and "'count'" in reply["message"]
         assert "384" in reply["message"]  # 4 points, 96 pad bits each
     assert_serves(daemon, tls_dir)
+
+
+ORPHAN_STARTER = """
+import sys, time
+from pathlib import Path
+from snail_client.embedded import start_daemon
+
+mapd = start_daemon("mapd", ["--map", sys.argv[1], "--tls-dir", sys.argv[2]],
+                    Path(sys.argv[3]))
+print(mapd.process.pid, flush=True)
+time.sleep(600)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_local_map_owner_ends_with_its_starter(tmp_path, tls_dir):
+    (tmp_path / "map.json").write_text(json.dumps(MAP))
+    starter = subprocess.Popen([sys.executable, "-c", ORPHAN_STARTER,
+                                str(tmp_path / "map.json"), str(tls_dir),
+                                str(tmp_path / "mapd.log")], stdout=subprocess.PIPE, text=True)
+    try:
+        pid = int(starter.stdout.readline())
+    finally:
+        starter.send_signal(signal.SIGKILL)
+        starter.wait()
+    deadline = time.monotonic() + 20
+    while _running(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = _running(pid)
+    if alive:
+        os.kill(pid, signal.SIGKILL)
+    assert not alive, "snail-mapd outlived its SIGKILLed starter"
+
+
+def _running(pid: int) -> bool:
+    """Alive and not a zombie."""
+    try:
+        return "\nState:\tZ" not in Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
