@@ -17,6 +17,7 @@ COPY snail_common /src/snail_common
 COPY snail_client /src/snail_client
 COPY snail_garbler /src/snail_garbler
 COPY snail_evaluator /src/snail_evaluator
+COPY snail_mapd /src/snail_mapd
 COPY snail_bench /src/snail_bench
 RUN set -e; python3 -m venv /opt/snail; \
     if ls /wheels/*.whl >/dev/null 2>&1; then \

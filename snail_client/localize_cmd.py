@@ -20,6 +20,7 @@ from snail_common.loc.problem import PoseVectors, ProblemError
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
 from snail_common.net.tls import TLSFileError
 
+from . import owner_localize
 from .inputs.options import load_frame, load_frames, localize_inputs, track_inputs
 from .links import DEFAULT_LINK_TIMEOUT
 from .localize import BACKENDS, Options, backend_for, localize
@@ -186,26 +187,50 @@ def _progress(backend: object, total: int, desc: str) -> Iterator[None]:
 @click.command("localize")
 @localize_inputs
 @_options
-def localize_cmd(input_path: str | None, as_json: bool, output: str | None, **kw) -> None:
+@click.option("--map-owner", metavar="HOST:PORT",
+              help="Map-owner setting: --input is a snail-frame/1 (2D points and the ids of "
+                   "the map points they match) and the map stays with the map owner "
+                   "(snail-mapd) at this address; it never learns your ids, points or "
+                   "pose, you never see its 3D points. Needs --garbler, --evaluator and "
+                   "--tls-dir.")
+@click.option("--map", "map_path", type=click.Path(exists=True, dir_okay=False),
+              metavar="MAP.json",
+              help="Map-owner setting with a map owner started here on loopback with this "
+                   "snail-map/1 map, for trying it out: this gives NO privacy against "
+                   "yourself (this machine holds the map and the frame together).")
+def localize_cmd(input_path: str | None, as_json: bool, output: str | None,
+                 map_owner: str | None, map_path: str | None, **kw) -> None:
     """Find the camera pose of one image privately: from a problem file, a camera image
-    with AprilTags, or an image of a COLMAP model.
+    with AprilTags, or an image of a COLMAP model; or, with --map-owner/--map, from a
+    frame whose map points only a map owner holds.
 
     Exit status: 0 a trusted pose; 1 the run failed; 2 bad usage or input; 3 a pose came
     back but is not trusted (status not_converged, degenerate, bad_fit or behind_camera;
     one line on stderr says why)."""
     options = _make_options(kw)
+    if map_owner or map_path:
+        if not input_path or kw.get("image") or kw.get("colmap"):
+            raise click.UsageError("--map-owner/--map take a snail-frame/1 file as --input")
+        try:
+            owner_localize.check(options, map_owner, map_path)
+        except ValueError as e:
+            raise click.UsageError(str(e)) from None
+    else:
+        try:
+            input_path, problem = load_frame(input_path, kw)
+        except ProblemError as e:
+            _fail(2, str(e))
     try:
-        input_path, problem = load_frame(input_path, kw)
-    except ProblemError as e:
-        _fail(2, str(e))
-    try:
-        with backend_for(options) as backend, _progress(
-                backend, max(options.min_invocations, 1), "secure runs"):
-            record = localize(problem, options, backend)
+        if map_owner or map_path:
+            record = owner_localize.localize_frame(input_path, options, map_owner, map_path)
+        else:
+            with backend_for(options) as backend, _progress(
+                    backend, max(options.min_invocations, 1), "secure runs"):
+                record = localize(problem, options, backend)
     except TLSFileError as e:
         _fail(2, f"--tls-dir: {e}")
     except (ProblemError, ValueError) as e:
-        _fail(2, f"{input_path}: {e}")
+        _fail(2, str(e) if map_owner or map_path else f"{input_path}: {e}")
     except ServiceError as e:
         _fail(1, str(e))
     except KeyboardInterrupt:

@@ -58,11 +58,13 @@ from snail_common.net.errors import (
     ProtocolError,
     RemoteError,
 )
+from snail_common.pnp.spec import owner_bits
 
 from .links import DEFAULT_LINK_TIMEOUT, Inbox, Link, ServiceError, labels_and_stats
 
 LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
          "evaluator_to_client", "garbler_to_client")
+OWNER_LINKS = ("garbler_to_mapowner", "mapowner_to_garbler")  # map-owner circuits only
 DEFAULT_TIMEOUT = 300.0
 DEFAULT_BUSY_WAIT = 30.0  # seconds a run retries servers that answer busy
 BACKOFF_FIRST, BACKOFF_MAX = 0.05, 2.0
@@ -96,6 +98,8 @@ class _Prepared:
     to_e: Inbox
     sent_g: int
     sent_e: int
+    frame: bytes | None = None  # the map owner's frame handle, for its circuits
+    owner_bits: int = 0  # input wires (the last ones) whose labels the map owner gives
 
     @property
     def usable(self) -> bool:
@@ -146,6 +150,13 @@ class AsyncSecureRunner:
         self._prepared: dict[str, deque[_Prepared]] = {}
         self._expected: dict[str, int] = {}
         self._filling: set[asyncio.Task] = set()
+        self.frame: tuple[bytes, str] | None = None  # see use_frame
+
+    def use_frame(self, handle: bytes, map_owner: str) -> None:
+        """Runs of map-owner circuits from now on take the map owner's inputs of this
+        frame (the handle its selection gave; its address as the garbler reaches it).
+        Sessions prepared for an earlier frame are dropped when found."""
+        self.frame = (handle, map_owner)
 
     async def _link(self, role: str) -> Link:
         async with self._lock:
@@ -218,6 +229,8 @@ class AsyncSecureRunner:
                              f"for {circuit_id}, got {bits.dtype} {bits.shape}")
         self._expected[circuit_id] = max(self._expected.get(circuit_id, 0) - 1, 0)
         labels = active_input_labels(session.seed, session.delta, bits)
+        if session.owner_bits:  # those wires are the map owner's: never a label from here
+            labels = labels[:len(labels) - session.owner_bits]
         try:
             sent_e = write_labels(session.evaluator.conn, "input_labels", sid, labels)
             self._fill(circuit_id)  # the next sessions garble while this one evaluates
@@ -243,14 +256,16 @@ class AsyncSecureRunner:
         traffic = {"client_to_garbler": session.sent_g,
                    "client_to_evaluator": session.sent_e + sent_e,
                    "garbler_to_evaluator": int(g_stats["traffic"]["garbler_to_evaluator"]),
-                   "evaluator_to_client": e_in, "garbler_to_client": g_in}
+                   "evaluator_to_client": e_in, "garbler_to_client": g_in,
+                   **{k: int(v) for k, v in g_stats["traffic"].items()
+                      if k in OWNER_LINKS}}
         timing = {f"garbler_{k}": v for k, v in g_stats["timing"].items()}
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
         ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
         self.last = Invocation(outputs, traffic, wall, timing, ahead)
         self.invocations += 1
         for k, v in traffic.items():
-            self.totals[k] += v
+            self.totals[k] = self.totals.get(k, 0) + v
         return self.last
 
     async def _prepare(self, circuit_id: str) -> _Prepared:
@@ -280,6 +295,11 @@ class AsyncSecureRunner:
         except registry.CircuitTooLarge as exc:
             raise ServiceError(f"{exc}: more than the servers compile (their "
                                f"--max-and-gates)", TOO_LARGE) from None
+        n_owner = owner_bits(iface)
+        if n_owner and self.frame is None:
+            raise ServiceError(f"{circuit_id} takes the map owner's input: no frame was "
+                               f"selected from a map owner")
+        owner = {"frame": self.frame[0], "map_owner": self.frame[1]} if n_owner else {}
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
@@ -290,21 +310,22 @@ class AsyncSecureRunner:
                 scheme=self.scheme))
             sent_g = garbler.conn.write(messages.make(
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
-                delta=labels_to_bytes(delta), key=key, scheme=self.scheme))
+                delta=labels_to_bytes(delta), key=key, scheme=self.scheme, **owner))
             await asyncio.gather(evaluator.conn.drain(), garbler.conn.drain())
         except ConnectionClosed:
             garbler.cancel(sid)
             evaluator.cancel(sid)
             raise
         return _Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
-                         sent_g, sent_e)
+                         sent_g, sent_e, owner.get("frame"), n_owner)
 
     def _take(self, circuit_id: str) -> _Prepared | None:
         """A prepared session of ``circuit_id`` the servers still hold, if any."""
         queue = self._prepared.get(circuit_id)
         while queue:
             session = queue.popleft()
-            if session.usable:
+            if session.usable and (not session.owner_bits
+                                   or session.frame == (self.frame or (None,))[0]):
                 return session
             self._cancel(session)  # expired or its link broke: garble anew
         return None
@@ -401,6 +422,10 @@ class SecureRunner:
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
                                          connect_timeout, ahead, busy_wait, cert_name,
                                          link_timeout, scheme)
+
+    def use_frame(self, handle: bytes, map_owner: str) -> None:
+        """Map-owner circuits take this frame's map-owner inputs (see the async runner)."""
+        self._runner.use_frame(handle, map_owner)
 
     def expect(self, circuit_id: str, count: int) -> None:
         """At least ``count`` invocations of ``circuit_id`` are coming (see the async

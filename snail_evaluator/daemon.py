@@ -30,6 +30,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from snail_common.circuit.ir import FIRST_INPUT
 from snail_common.circuit.schedule import Schedule
 from snail_common.gc import StreamError
@@ -52,8 +54,10 @@ from snail_common.net.errors import (
 from snail_common.net.logs import event
 from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
+from snail_common.pnp.spec import owner_bits
 
 from .lanes import EvalLane, LaneBatcher, Solo
+from .owner import EarlyOwnerLabels
 
 # input-label bytes a session may send before its circuit is loaded: far above the
 # largest circuit's inputs (n = 4096 points take about 10 MB), far below a memory risk
@@ -83,6 +87,7 @@ class Session:
     early: list[tuple[dict[str, Any], int]] = field(default_factory=list)  # labels that
     # came while the circuit was still loading, replayed once it is
     early_bytes: int = 0  # their wire size
+    owner: LabelAssembler | None = None  # the map owner's wires, if the circuit has any
 
     def record(self, outcome: str, reason: str = "") -> dict:
         """This session's log line fields (see Daemon.log_session)."""
@@ -94,17 +99,20 @@ class Session:
 
 class EvaluatorDaemon(Daemon):
     role = "evaluator"
-    allowed = ("client", "garbler")
+    allowed = ("client", "garbler", "mapowner")
 
     def __init__(self, options: Options, logger: logging.Logger) -> None:
         super().__init__(options, logger)
         self.sessions: dict[bytes, Session] = {}
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
+        self.owner_early = EarlyOwnerLabels()
 
     async def serve(self, conn: Connection) -> None:
         try:
             if conn.peer_role == "garbler":
                 await self._serve_garbler(conn)
+            elif conn.peer_role == "mapowner":
+                await self._serve_mapowner(conn)
             else:
                 await self._serve_client(conn)
         except ProtocolError as exc:
@@ -256,13 +264,19 @@ class EvaluatorDaemon(Daemon):
     async def _client_load(self, s: Session) -> None:
         """Load (or compile) the session's circuit, then take the labels that came early."""
         try:
-            _, schedule = await self.circuit(s.circuit, s.hash)
+            circuit, schedule = await self.circuit(s.circuit, s.hash)
         except ProtocolError as exc:
             self._fail(s, exc)
             return
         s.n_and = schedule.n_and
         if s.failure is None:
-            s.labels = LabelAssembler("input_labels", FIRST_INPUT + schedule.n_inputs)
+            n_owner = owner_bits(circuit)
+            s.labels = LabelAssembler("input_labels",
+                                      FIRST_INPUT + schedule.n_inputs - n_owner)
+            if n_owner:
+                s.owner = LabelAssembler("owner_labels", n_owner)
+                for msg, size in self.owner_early.take(s.sid):
+                    self._add_owner_labels(s, msg, size)
             self._arm(s)
             early, s.early, s.early_bytes = s.early, [], 0
             for msg, size in early:
@@ -292,8 +306,49 @@ class EvaluatorDaemon(Daemon):
         except ProtocolError as exc:
             self._fail(s, exc)
             return
-        if s.labels.complete:
-            s.ready.set_result(s.labels.labels())
+        self._check_inputs(s)
+
+    def _check_inputs(self, s: Session) -> None:
+        """Start evaluating once the client's labels (and the map owner's) are in."""
+        if s.failure is None and s.labels.complete and not s.ready.done() and (
+                s.owner is None or s.owner.complete):
+            inputs = s.labels.labels()
+            s.ready.set_result(inputs if s.owner is None
+                               else np.concatenate([inputs, s.owner.labels()]))
+
+    # ---- the map owner ---------------------------------------------------------------------
+    async def _serve_mapowner(self, conn: Connection) -> None:
+        """The map owner's link: the labels of its wires, by sid (owner.py)."""
+        while True:
+            msg, size = await self.next_message(conn, lambda: False)
+            kind = msg["t"]
+            if kind == "owner_labels":
+                s = self.sessions.get(msg["sid"])
+                if s is not None and s.owner is not None:
+                    self._add_owner_labels(s, msg, size)
+                else:
+                    self.owner_early.add(msg, size)
+            elif kind == "health_request":
+                await conn.send(self.health())
+            elif kind == "bye":
+                return
+            else:
+                raise ProtocolError(UNEXPECTED, f"the map owner may not send {kind} to the "
+                                                "evaluator")
+
+    def _add_owner_labels(self, s: Session, msg: dict[str, Any], size: int) -> None:
+        s.bytes_in += size
+        try:
+            s.owner.add(msg)
+        except ProtocolError as exc:
+            self._fail(s, exc)
+            return
+        self._check_inputs(s)
+
+    def finish(self, peer: str, record: dict) -> None:
+        """A session ended: map-owner labels still waiting for it go too."""
+        self.owner_early.drop(record["sid"])
+        super().finish(peer, record)
 
     # ---- the garbler side ------------------------------------------------------------------
     async def _serve_garbler(self, conn: Connection) -> None:

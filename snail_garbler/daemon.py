@@ -58,6 +58,7 @@ from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
 
 from .lanes import LaneBatcher, LaneView
+from .owner import OwnerInputs
 
 MAX_IDLE = 8  # pooled idle connections to the evaluator
 # why a session task was cancelled, as its log line and the client's error say
@@ -95,6 +96,7 @@ class GarblerDaemon(Daemon):
         self.client_ctx = client_ctx  # TLS context for the link to the evaluator
         self.idle: list[Connection] = []
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
+        self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout)
 
     async def serve(self, conn: Connection) -> None:
         tasks: dict[bytes, asyncio.Task] = {}
@@ -151,12 +153,13 @@ class GarblerDaemon(Daemon):
             return
         sent, running = 0, False
         try:
-            _, schedule = await self.circuit(req["circuit"], req["hash"])
+            circuit, schedule = await self.circuit(req["circuit"], req["hash"])
             record["n_and"] = schedule.n_and
             try:
                 check_delta(req["delta"])
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
+            owner = await self.owners.feed(req, circuit, self.options.session_timeout)
             scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
             block, frame = frame_plan(schedule, scheme)
             garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
@@ -181,7 +184,7 @@ class GarblerDaemon(Daemon):
                 t_streamed = time.monotonic()
                 replied = self._reply(client, sid, garbler, sent, {
                     "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
-                    "lanes": float(getattr(garbler, "lanes", 1))})
+                    "lanes": float(getattr(garbler, "lanes", 1))}, owner)
                 if not answered:  # the client need not wait for this; a garbled-ahead
                     # session's verdict comes once its client's labels did, which the
                     # evaluator awaits up to its --idle-timeout while the client is busy
@@ -221,14 +224,15 @@ class GarblerDaemon(Daemon):
             self.finish(peer, record)
 
     def _reply(self, client: Connection, sid: bytes, garbler: Garbler | LaneView, sent: int,
-               timing: dict[str, float]) -> int:
+               timing: dict[str, float], owner: dict[str, int]) -> int:
         """Queue the output zero-labels and stats for the client; the bytes queued (0 if
         it is gone)."""
         try:
             return (write_labels(client, "output_zero_labels", sid,
                                  garbler.output_zero_labels)
                     + client.write(messages.make("stats", sid=sid,
-                                                 traffic={"garbler_to_evaluator": sent},
+                                                 traffic={"garbler_to_evaluator": sent,
+                                                          **owner},
                                                  timing=timing)))
         except ConnectionClosed:
             event(self.log, "client_gone", peer=client.peer_name, sid=sid,
@@ -302,6 +306,7 @@ class GarblerDaemon(Daemon):
             conn.abort()
 
     async def shutdown_extra(self) -> None:
+        await self.owners.close()
         await asyncio.gather(*(c.close(messages.make("bye")) for c in self.idle),
                              return_exceptions=True)
         self.idle.clear()

@@ -19,8 +19,26 @@ garbler -> client            ``output_zero_labels`` chunks, then ``stats``; or `
 evaluator -> client          ``output_labels`` chunks, then ``stats``; or ``error``
 server -> anyone             ``health`` (reply to ``health_request``), ``error``, ``bye``
 
+The map-owner setting (README, "Map-owner setting") adds the role ``mapowner``:
+client -> mapowner           ``map_info_request``; answered by ``map_info`` chunks (the
+                             sorted public id list and the normalizing transform);
+                             ``ot_base_a`` once (answered ``ot_base_b``), then per frame
+                             ``ot_ext_u`` (the index bits of its selection), answered by
+                             ``sel_table`` chunks carrying the frame handle
+garbler -> mapowner          per invocation ``map_invocation`` {sid, frame, count,
+                             evaluator}; the map owner answers ``ot_base_a`` (once per
+                             connection, the garbler replies ``ot_base_b``), ``ot_ext_u``
+                             {sid} with its pad bits as choices; the garbler sends
+                             ``ot_ext_y`` {sid}; the map owner answers ``done`` or ``error``
+mapowner -> evaluator        ``owner_labels`` chunks: the labels of the map owner's wires
+                             (the last ``count`` input wires of the circuit)
+``garble_request`` carries the ``frame`` handle and the ``map_owner`` address when the
+circuit takes map-owner inputs.
+
 The garbler never receives input labels and the evaluator never receives a seed or delta:
-there is no message carrying them to the wrong role.
+there is no message carrying them to the wrong role. The map owner never receives a 2D
+point, a map id, a pose, a seed or delta; the client never receives a 3D point in the
+clear nor a label of the map owner's wires.
 """
 
 from __future__ import annotations
@@ -34,12 +52,17 @@ from snail_common.gc.stream import SCHEMES
 
 from .errors import MALFORMED, MISSING_FIELD, UNKNOWN_FIELD, UNKNOWN_TYPE, ProtocolError
 
-ROLES = ("client", "garbler", "evaluator")
+ROLES = ("client", "garbler", "evaluator", "mapowner")
 SID_BYTES = 16
 LABEL_BYTES = 16
 LABEL_CHUNK = 1 << 16  # labels per chunk: 1 MiB
 MAX_TEXT = 1024
 MAX_LABELS = 1 << 28
+DATA_CHUNK = 2 << 20  # bytes of a chunked blob (sel_table, map_info ids) per message
+MAX_OT_BYTES = 3 << 20  # one OT message body (u or y): 98,304 chosen OTs
+MAX_ADDRESS = 300  # HOST:PORT
+POINT_BYTES = 32  # an Ed25519 point (ot/group.py)
+BASE_OTS = 128
 _HASH = re.compile(r"^[0-9a-f]{64}$")
 
 Validator = Callable[[str, Any], None]
@@ -68,12 +91,15 @@ def count(name: str, v: Any) -> None:
         _fail(name, "a non-negative integer", v)
 
 
-def blob(size: int | None = None, multiple: int = 1) -> Validator:
+def blob(size: int | None = None, multiple: int = 1,
+         max_size: int | None = None) -> Validator:
     def check(name: str, v: Any) -> None:
         if not isinstance(v, bytes):
             _fail(name, "binary", v)
         if size is not None and len(v) != size:
             _fail(name, f"{size} bytes", v)
+        if max_size is not None and len(v) > max_size:
+            _fail(name, f"at most {max_size} bytes", v)
         if len(v) % multiple:
             _fail(name, f"a multiple of {multiple} bytes", v)
     return check
@@ -117,6 +143,8 @@ labels = blob(multiple=LABEL_BYTES)
 key16 = blob(16)
 circuit = text(128)
 scheme = one_of(tuple(SCHEMES))  # the garbling scheme; absent means half-gates
+chunk = blob(max_size=DATA_CHUNK)
+ot_body = blob(max_size=MAX_OT_BYTES)
 
 # type -> (required fields, optional fields)
 SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
@@ -127,7 +155,8 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash},
                       {"scheme": scheme}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
-                        "delta": key16, "key": key16}, {"scheme": scheme}),
+                        "delta": key16, "key": key16},
+                       {"scheme": scheme, "frame": key16, "map_owner": text(MAX_ADDRESS)}),
     "input_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
     "tables": ({"sid": sid, "data": blob()}, {}),
     "done": ({"sid": sid}, {}),
@@ -140,6 +169,19 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
                {}),
     "error": ({"code": text(64), "message": text()}, {"sid": sid}),
     "bye": ({}, {}),
+    # the map-owner setting
+    "map_info_request": ({}, {}),
+    "map_info": ({"points": count, "transform": blob(32), "start": count,
+                  "ids": blob(multiple=4, max_size=DATA_CHUNK)}, {}),
+    "ot_base_a": ({"a": blob(POINT_BYTES)}, {}),
+    "ot_base_b": ({"b": blob(BASE_OTS * POINT_BYTES)}, {}),
+    "ot_ext_u": ({"start": count, "m": count, "u": ot_body}, {"sid": sid}),
+    "ot_ext_y": ({"start": count, "y": ot_body}, {"sid": sid}),
+    "sel_table": ({"frame": key16, "start": count, "key": key16, "offset": count,
+                   "total": count, "table": chunk}, {}),
+    "map_invocation": ({"sid": sid, "frame": key16, "count": count,
+                        "evaluator": text(MAX_ADDRESS)}, {}),
+    "owner_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
 }
 
 

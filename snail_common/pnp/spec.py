@@ -4,6 +4,12 @@ A circuit id names everything that shapes the circuit, e.g. ``lm-sil-ldlt-n6``; 
 registry knows it as ``loc/lm-sil-ldlt-n6`` (family.py registers the family). The circuit
 that returns the normal equations for the client to solve (solver ``client``) is the
 same for LM and GN: ``ne-sil-n6``.
+
+The map-owner variant (suffix ``-mo``, e.g. ``lm-sil-ldlt-n6-mo``) takes the map points as
+two XOR shares: ``world_masked`` from the device (xyz ^ P, the float32 bits under a pad)
+and ``world_pad`` (P) from the map owner, its last input group, so the map owner's wires
+are the last 96 n input wires. XOR is free, and the 6x6 solve stays inside: returning
+J^T W J would show the device the geometry of the map points it never sees.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from snail_common.circuit import CircuitBuilder
-from snail_common.circuit.ir import Circuit
+from snail_common.circuit.ir import Circuit, Interface
 
 from .do import ITERATIONS as DO_ITERATIONS
 from .do import MAX_ITERATIONS as DO_MAX_ITERATIONS
@@ -39,7 +45,9 @@ MAX_POINTS = 4096
 SHALLOW_POINTS = 32
 ID_PATTERN = re.compile(r"^(?:(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"
                         r"-n(?P<points>[1-9][0-9]{0,3})(?:-i(?P<iterations>[1-9][0-9]?))?"
-                        r"|ne-sil-n(?P<normal_points>[1-9][0-9]{0,3}))$")
+                        r"(?P<owner>-mo)?|ne-sil-n(?P<normal_points>[1-9][0-9]{0,3}))$")
+MASKED = "world_masked"  # the device's share of the map points: float32 bits ^ pad
+OWNER_PAD = "world_pad"  # the map owner's share: the pad, its last input group
 
 
 @dataclass(frozen=True)
@@ -53,6 +61,7 @@ class Spec:
     solver: str = "ldlt"
     points: int = 6
     iterations: int = DO_ITERATIONS
+    owner: bool = False  # map points as device and map-owner shares (module doc)
 
     def __post_init__(self) -> None:
         if self.algorithm not in ALGORITHMS:
@@ -74,12 +83,17 @@ class Spec:
         if self.mode == "sil" and self.iterations != DO_ITERATIONS:
             raise ValueError("iterations: a SIL circuit runs one iteration (only 'do' takes "
                              "an iteration count)")
+        if self.owner and (self.mode != "sil" or self.solver == CLIENT):
+            raise ValueError("the map-owner variant is a SIL circuit that solves inside "
+                             "(the normal equations would reveal the map)")
 
     @property
     def circuit_id(self) -> str:
         if self.solver == CLIENT:
             return f"ne-sil-n{self.points}"
         base = f"{self.algorithm}-{self.mode}-{self.solver}-n{self.points}"
+        if self.owner:
+            return f"{base}-mo"
         return base if self.iterations == DO_ITERATIONS else f"{base}-i{self.iterations}"
 
     @property
@@ -97,16 +111,22 @@ class Spec:
             return cls("lm", "sil", CLIENT, int(match["normal_points"]))
         iterations = int(match["iterations"] or DO_ITERATIONS)
         return cls(match["algorithm"], match["mode"], match["solver"], int(match["points"]),
-                   iterations)
+                   iterations, owner=bool(match["owner"]))
 
 
 def build(spec: Spec) -> Circuit:
     """Emit the circuit of ``spec`` (seconds for hundreds of points; cache it)."""
     b = CircuitBuilder()
     be = CircuitBackend(b, depth_opt=spec.points <= SHALLOW_POINTS)
-    inputs = {name: F(be, b.input(name, shape, bits=32, dtype="float32"))
+    inputs = {name: F(be, b.input(MASKED if spec.owner and name == "world" else name,
+                                  shape, bits=32,
+                                  dtype="uint32" if spec.owner and name == "world"
+                                  else "float32"))
               for name, shape in input_shapes(spec.algorithm, spec.points,
                                               spec.solver).items()}
+    if spec.owner:  # the shares meet in free XOR gates
+        pad = b.input(OWNER_PAD, (spec.points, 3), bits=32, dtype="uint32")
+        inputs["world"] = F(be, b.xor(inputs["world"].v, pad))
     outputs = program(spec, inputs)
     for name in output_shapes(spec):
         b.output(name, outputs[name].v, dtype="float32")
@@ -127,9 +147,20 @@ def program(spec: Spec, inputs: dict[str, F]) -> dict[str, F]:
     return sil_program(inputs, spec.algorithm, spec.solver)
 
 
+def owner_bits(circuit: Circuit | Interface) -> int:
+    """How many of a circuit's input wires (the last ones) are the map owner's: the bits of
+    a final ``world_pad`` group, else 0."""
+    last = circuit.inputs[-1] if circuit.inputs else None
+    return last.size if last is not None and last.name == OWNER_PAD else 0
+
+
 def run_mirror(spec: Spec, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The float32 mirror of the circuit: same inputs, bit-identical outputs."""
     be = MirrorBackend()
+    if spec.owner:
+        shares = np.asarray(values[MASKED], np.uint32) ^ np.asarray(values[OWNER_PAD],
+                                                                     np.uint32)
+        values = {**values, "world": shares.view(np.float32)}
     shapes = input_shapes(spec.algorithm, spec.points, spec.solver)
     missing = sorted(set(shapes) - set(values))
     if missing:

@@ -1,0 +1,136 @@
+"""The map owner's input wires of a session: the garbler is the sender of a chosen-message
+IKNP OT whose receiver is the map owner (snail-mapd).
+
+For a circuit whose last input group is the map owner's (``pnp.spec.owner_bits``), the
+client's ``garble_request`` names the frame handle the map owner issued and the map
+owner's address. The garbler derives those wires' zero-labels L0 from the client's seed,
+as for every input, and offers (L0, L0 ^ D) per wire; the map owner's choices are its pad
+bits, so it gets one label per wire and never D, and forwards them to the evaluator. The
+garbler learns nothing of the bits (IKNP hides the choices). Links are kept per map-owner
+address with their OT state: the base OTs (~0.1 s) run once per link, not per session.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ssl
+from typing import Any
+
+import numpy as np
+
+from snail_common.circuit.ir import FIRST_INPUT, Circuit
+from snail_common.gc import derive_zero_labels, labels_from_bytes
+from snail_common.net import messages
+from snail_common.net.conn import Connection, connect, format_addr, parse_addr
+from snail_common.net.errors import (
+    BAD_REQUEST,
+    PEER_LOST,
+    UNEXPECTED,
+    ConnectionClosed,
+    ProtocolError,
+    RemoteError,
+)
+from snail_common.ot import ExtSender
+from snail_common.ot.carry import ot_part
+from snail_common.pnp.spec import owner_bits
+
+MAX_IDLE = 8  # idle links kept per map owner
+
+Link = tuple[Connection, ExtSender]
+
+
+class OwnerInputs:
+    """Runs the OT of the map owner's wires for a session; pools the links."""
+
+    def __init__(self, ctx: ssl.SSLContext, evaluator: tuple[str, int],
+                 handshake_timeout: float) -> None:
+        self.ctx, self.evaluator = ctx, format_addr(*evaluator)
+        self.handshake_timeout = handshake_timeout
+        self.idle: dict[tuple[str, int], list[Link]] = {}
+
+    async def feed(self, req: dict[str, Any], circuit: Circuit,
+                   timeout: float) -> dict[str, int]:
+        """Give the map owner its labels for session ``req`` (nothing to do for a circuit
+        without map-owner wires); the bytes each way. ProtocolError for a request that
+        does not fit the circuit, the map owner's refusal or a lost map owner."""
+        count = owner_bits(circuit)
+        if not count:
+            if "frame" in req or "map_owner" in req:
+                raise ProtocolError(BAD_REQUEST, f"fields 'frame'/'map_owner': circuit "
+                                                 f"{req['circuit']} takes no map-owner input")
+            return {}
+        if "frame" not in req or "map_owner" not in req:
+            raise ProtocolError(BAD_REQUEST, f"circuit {req['circuit']} takes the map "
+                                             f"owner's input: 'frame' and 'map_owner' "
+                                             f"are required")
+        try:
+            addr = parse_addr(req["map_owner"])
+        except ValueError as exc:
+            raise ProtocolError(BAD_REQUEST, f"field 'map_owner': {exc}") from None
+        x0 = derive_zero_labels(req["seed"], FIRST_INPUT + circuit.n_inputs)[-count:]
+        x1 = x0 ^ labels_from_bytes(req["delta"])[0]
+        conn, ot = await self._acquire(addr)
+        before = conn.bytes_out, conn.bytes_in
+        try:
+            await self._run(conn, ot, req, count, x0, x1, timeout)
+        except RemoteError as exc:  # the client hears it as the map owner's, not the evaluator's
+            conn.abort()
+            raise ProtocolError(exc.code, exc.message) from None
+        except ConnectionClosed as exc:
+            conn.abort()
+            raise ProtocolError(PEER_LOST, f"lost the map owner: {exc}") from None
+        except BaseException:
+            conn.abort()
+            raise
+        self._release(addr, (conn, ot))
+        return {"garbler_to_mapowner": conn.bytes_out - before[0],
+                "mapowner_to_garbler": conn.bytes_in - before[1]}
+
+    async def _run(self, conn: Connection, ot: ExtSender, req: dict[str, Any], count: int,
+                   x0: np.ndarray, x1: np.ndarray, timeout: float) -> None:
+        sid = req["sid"]
+        conn.write(messages.make("map_invocation", sid=sid, frame=req["frame"], count=count,
+                                 evaluator=self.evaluator))
+        while True:
+            msg, _ = await conn.recv(timeout)
+            kind = msg["t"]
+            if kind == "error":
+                raise RemoteError(msg["code"], f"the map owner reported: {msg['message']}",
+                                  msg.get("sid"))
+            if kind == "ot_base_a":
+                conn.write(messages.make("ot_base_b", b=ot.base_reply(ot_part(msg))["b"]))
+            elif kind == "ot_ext_u" and msg.get("sid") == sid:
+                answer = ot.respond_chosen(ot_part(msg), x0, x1)
+                conn.write(messages.make("ot_ext_y", sid=sid, start=answer["start"],
+                                         y=answer["y"]))
+            elif kind == "done" and msg["sid"] == sid:
+                return
+            else:
+                raise ProtocolError(UNEXPECTED, f"the map owner sent {kind} mid-invocation")
+
+    async def _acquire(self, addr: tuple[str, int]) -> Link:
+        pool = self.idle.get(addr, [])
+        while pool:
+            conn, ot = pool.pop()
+            if conn.idle:
+                return conn, ot
+            conn.abort()
+        try:
+            conn = await connect(*addr, self.ctx, "garbler", "mapowner",
+                                 self.handshake_timeout)
+        except ConnectionClosed as exc:
+            raise ProtocolError(PEER_LOST, f"cannot reach the map owner: {exc}") from None
+        return conn, ExtSender()
+
+    def _release(self, addr: tuple[str, int], link: Link) -> None:
+        pool = self.idle.setdefault(addr, [])
+        if link[0].idle and len(pool) < MAX_IDLE:
+            pool.append(link)
+        else:
+            link[0].abort()
+
+    async def close(self) -> None:
+        links = [conn for pool in self.idle.values() for conn, _ in pool]
+        self.idle.clear()
+        await asyncio.gather(*(c.close(messages.make("bye")) for c in links),
+                             return_exceptions=True)

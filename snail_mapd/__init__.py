@@ -1,0 +1,1 @@
+"""snail map-owner role."""

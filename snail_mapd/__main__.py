@@ -1,0 +1,5 @@
+"""python -m snail_mapd"""
+
+from .cli import main
+
+main(prog_name="snail-mapd")
