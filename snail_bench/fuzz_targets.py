@@ -204,7 +204,15 @@ def seeds(target: str) -> list[bytes]:
                  messages.make("input_labels", sid=bytes(16), start=0, total=2,
                                labels=bytes(32)),
                  messages.error("busy", "full", bytes(16)),
-                 messages.make("health_request")]
+                 messages.make("health_request"),
+                 # the map owner's protocol
+                 messages.make("map_info", points=3, transform=bytes(32), start=0,
+                               ids=bytes(12)),
+                 messages.make("ot_ext_u", sid=bytes(16), start=0, m=8, u=bytes(128)),
+                 messages.make("sel_table", frame=bytes(16), start=0, key=bytes(16),
+                               offset=0, total=24, table=bytes(24)),
+                 messages.make("owner_labels", sid=bytes(16), start=0, total=2,
+                               labels=bytes(32))]
     wire = [encode_bytes(m) for m in catalogue]
     problem_json = {"format": "snail-problem/1",
                     "camera": {"fx": 800, "fy": 800, "cx": 320, "cy": 240,
