@@ -1,4 +1,4 @@
-# One image for all three roles: snail-garbler, snail-evaluator, snail-client (and
+# One image for every role: snail-garbler, snail-evaluator, snail-mapd, snail-client (and
 # snail-bench). BASE is any Debian-like image with Python >= 3.10 and venv:
 #   docker build .                                      (python:3.11-slim from a registry)
 #   deploy/build-base && docker build --build-arg BASE=snail-base:bookworm .

@@ -163,7 +163,9 @@ class EvaluatorDaemon(Daemon):
                 s.watchdog = asyncio.get_running_loop().call_later(
                     min(self.options.session_timeout, left), self._expire, s)
                 return
-        missing = "the garbler's table stream" if not s.garbler else "the client's input labels"
+        missing = ("the garbler's table stream" if not s.garbler
+                   else "the map owner's labels" if s.labels is not None and s.labels.complete
+                   else "the client's input labels")
         self._fail(s, ProtocolError(TIMEOUT, f"{missing} did not arrive within "
                                              f"{self.options.session_timeout:g} s"))
 

@@ -21,7 +21,7 @@ from snail_common.pnp.spec import MASKED, OWNER_PAD, Spec
 from .backends import Backend, Values
 from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
 from .mapfile import Frame, MapPoints
-from .pipeline import Localized, Options, _solve_sil
+from .pipeline import Localized, Options, solve_sil
 from .preprocess import Frame as Similarity
 from .preprocess import distortion_weights, undistort
 from .problem import Problem, ProblemError
@@ -157,7 +157,7 @@ def _localize(frame: Frame, published: PublishedMap, nrm: Normalized, spec: Spec
     first = backend.invocations
     pose0 = similarity.to_normalized(pose_from_rvec_tvec(frame.initial_pose.rvec,
                                                          frame.initial_pose.tvec))
-    pose, cost, iterations, converged, walls = _solve_sil(spec, options, backend, nrm, pose0)
+    pose, cost, iterations, converged, walls = solve_sil(spec, options, backend, nrm, pose0)
     backend.pad(spec, first + options.min_invocations)
     rvec, tvec = pose_to_rvec_tvec(similarity.to_original(pose))
     return Localized(rvec, tvec, cost, similarity.rms_px(cost), iterations,

@@ -120,7 +120,7 @@ def localize(problem: Problem, options: Options, backend: Backend,
     backend.expect(spec, options.min_invocations if options.mode == "sil" else 1)
     first = backend.invocations
     pose0 = frame.to_normalized(pose_from_rvec_tvec(pose_vectors.rvec, pose_vectors.tvec))
-    solve = _solve_do if options.mode == "do" else _solve_sil
+    solve = _solve_do if options.mode == "do" else solve_sil
     pose, cost, iterations, converged, walls = solve(spec, options, backend, nrm, pose0)
     if options.mode == "sil":
         backend.pad(spec, first + options.min_invocations)
@@ -130,10 +130,10 @@ def localize(problem: Problem, options: Options, backend: Backend,
                      time.perf_counter() - start)
 
 
-def _solve_sil(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
+def solve_sil(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
                pose0: Pose) -> tuple[Pose, float, int, bool, list[float]]:
     """The LM/GN driver, one SIL invocation per call (per new pose, when the client
-    solves)."""
+    solves); the map-owner setting drives it too (owner.py)."""
     walls: list[float] = []
 
     def iteration(problem: Normalized, pose: Pose, lam: float) -> IterationResult:
