@@ -155,9 +155,11 @@ def test_the_pose_equals_the_cleartext_runs_bit_for_bit(servers, tmp_path, m):
     assert traffic["mapowner_to_client"] > 12 * 6 * m  # the whole padded table
 
 
+@pytest.mark.parametrize("m", [64, 1000, 10_000])
 @pytest.mark.parametrize("example", ["apriltag_4corners", "synthetic_n12", "synthetic_n64"])
-def test_every_shared_example_up_to_64_points(servers, tmp_path, example):
-    got, want, _ = run_frame(servers, 1000, tmp_path, example)
+def test_every_shared_example_up_to_64_points(servers, tmp_path, example, m):
+    """With synthetic_n6 above: every shared example up to n = 64, in every map size."""
+    got, want, _ = run_frame(servers, m, tmp_path, example)
     assert np.array_equal(got.rvec, want.rvec) and np.array_equal(got.tvec, want.tvec)
     assert got.cost == want.cost and got.converged
 
