@@ -286,7 +286,8 @@ def _map_owner_service(points: tuple[int, ...], map_points: tuple[int, ...], rep
         for m, row in by_m.items():
             pad, sel = row["pad_ot"], row["selection"]
             click.echo(f"{name:>20} M={m:>7}: median {row['median_s']:.3f} s/iteration "
-                       f"(plain {row['plain_circuit']} {row['plain_median_s']:.3f} s)  "
+                       f"(first setting, {row['plain_circuit']}: {row['plain_frame_median_s']:.3f} "
+                       f"s)  "
                        f"{row['and']:,} AND (plain {row['plain_and']:,}; selection 0)  "
                        f"pad OT {pad['map_owner_s']} s, {pad['mapowner_to_garbler']:,} B "
                        f"up / {pad['garbler_to_mapowner']:,} B down per iteration  "
