@@ -192,17 +192,32 @@ def engine(schemes: tuple[str, ...], as_json: bool) -> None:
               default=DEFAULT_SCHEME, show_default=True,
               help="Garbling scheme of every session: three-halves sends 0.77x the table "
                    "bytes but garbles slower, and is never batched into lanes.")
+@click.option("--map-points", "map_points", type=click.IntRange(4, 1_000_000), multiple=True,
+              metavar="M", help="The map-owner setting's extra cost: for each --points n "
+              "and each M (repeat for several), a snail-mapd on loopback holds a random "
+              "M-point map containing a random n-point scene and --repeat frames localize "
+              "against it; reports per iteration the seconds and AND gates beside the plain "
+              "lm-sil-ldlt-nN circuit's (measured in the same run), the selection's AND "
+              "gates (0: it is an OT, no circuit), the map owner's OT time per invocation "
+              "and selection time per frame (from its session log) and bytes per link. "
+              "Embedded daemons only; implies --solve circuit, --algorithm lm, --mode sil.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def service(algorithm: str, mode: str, solve: str | None, solver: str,
             points: tuple[int, ...], repeat: int,
             garbler: str | None, evaluator: str | None, tls_dir: str | None,
-            clients: int, lane_window_ms: float | None, scheme: str, as_json: bool) -> None:
+            clients: int, lane_window_ms: float | None, scheme: str,
+            map_points: tuple[int, ...], as_json: bool) -> None:
     """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
-    per link, and the servers' peak memory. Circuits are compiled on first use."""
+    per link, and the servers' peak memory. Circuits are compiled on first use. With
+    --map-points, also what the map-owner setting adds (a "map_owner" section)."""
     from snail_client.embedded import check_addresses
 
     from .service import service_report
 
+    if map_points:
+        _map_owner_service(points or SERVICE_POINTS, map_points, repeat, algorithm, mode,
+                           solve, solver, garbler, clients, lane_window_ms, scheme, as_json)
+        return
     try:
         check_addresses(garbler, evaluator, tls_dir)
         specs = [_spec(algorithm, mode, solve, solver, n) for n in points or SERVICE_POINTS]
@@ -240,6 +255,44 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
             click.echo(f"{'':>20}  {row['clients']} clients: "
                        f"{row['throughput_inv_per_s']:.1f} invocations/s in total, "
                        f"slowest client's median {worst:.3f} s")
+
+
+def _map_owner_service(points: tuple[int, ...], map_points: tuple[int, ...], repeat: int,
+                       algorithm: str, mode: str, solve: str | None, solver: str,
+                       garbler: str | None, clients: int, lane_window_ms: float | None,
+                       scheme: str, as_json: bool) -> None:
+    """``service --map-points``: the plain and map-owner circuits side by side."""
+    from snail_client.secure import ServiceError
+
+    from .mapowner import map_owner_report
+
+    if garbler or clients > 1 or algorithm != "lm" or mode != "sil" or solve == "client" \
+            or solver != "ldlt":
+        raise click.UsageError("--map-points measures embedded daemons, one client, the "
+                               "map-owner circuit lm-sil-ldlt (no --garbler, --clients, "
+                               "--algorithm gn, --mode do, --solve client or --solver svd)")
+    if any(m < n for m in map_points for n in points):
+        raise click.UsageError("--map-points: every map must hold the scene's --points")
+    lanes = () if lane_window_ms is None else ("--lane-window-ms", str(lane_window_ms))
+    try:
+        report = map_owner_report(points, map_points, repeat, scheme, lanes)
+    except ServiceError as e:
+        click.echo(f"snail-bench: {e}", err=True)
+        sys.exit(1)
+    if as_json:
+        click.echo(json.dumps(report))
+        return
+    for name, by_m in report["map_owner"].items():
+        for m, row in by_m.items():
+            pad, sel = row["pad_ot"], row["selection"]
+            click.echo(f"{name:>20} M={m:>7}: median {row['median_s']:.3f} s/iteration "
+                       f"(first setting, {row['plain_circuit']}: {row['plain_frame_median_s']:.3f} "
+                       f"s)  "
+                       f"{row['and']:,} AND (plain {row['plain_and']:,}; selection 0)  "
+                       f"pad OT {pad['map_owner_s']} s, {pad['mapowner_to_garbler']:,} B "
+                       f"up / {pad['garbler_to_mapowner']:,} B down per iteration  "
+                       f"selection {sel['map_owner_s']} s, {sel['bytes_to_device']:,} B "
+                       f"per frame  pose == cleartext: {row['pose_equals_cleartext']}")
 
 
 @main.command()

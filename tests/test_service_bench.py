@@ -53,3 +53,46 @@ def test_service_bench_measures_a_fleet_with_lanes():
     # 6 runs in at least the slowest client's 2 runs' time, and not absurdly fast
     assert 0 < row["throughput_inv_per_s"] <= 6 / max(row["client_median_s"])
     assert row["timing"]["garbler_lanes"] >= 1
+
+
+def test_service_bench_reports_the_map_owner_settings_extra_cost():
+    out = _bench("--points", "6", "--map-points", "64", "--repeat", "1", "--json")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    plain = report["service"]["lm-sil-ldlt-n6"]  # the first setting's, same daemons
+    row = report["map_owner"]["lm-sil-ldlt-n6-mo"]["64"]
+    assert (row["points"], row["map_points"], row["repeat"]) == (6, 64, 1)
+    assert row["plain_circuit"] == "lm-sil-ldlt-n6" and row["plain_and"] == plain["and"]
+    assert row["plain_median_s"] == plain["median_s"] > 0
+    # the pads come off with free XORs: the same AND gates as the plain circuit
+    assert row["and"] == registry.interface("loc/lm-sil-ldlt-n6-mo").counts["and"] \
+        == plain["and"]
+    assert 0 < row["min_s"] <= row["median_s"] <= row["max_s"]
+    assert row["timed_iterations"] >= 1 and row["invocations_per_frame"] >= 1
+    selection, pad = row["selection"], row["pad_ot"]
+    assert selection["and"] == 0 and "no circuit" in selection["how"]
+    assert selection["frames"] == 1 and selection["map_owner_s"] > 0
+    assert selection["bytes_to_device"] >= 12 * 6 * 64  # every point under a pad
+    assert selection["bytes_from_device"] > 0
+    assert "snail-mapd session log" in selection["map_owner_s_source"]
+    assert pad["ots_per_invocation"] == 96 * 6
+    assert pad["sessions"] == row["invocations_per_frame"] and pad["map_owner_s"] > 0
+    assert pad["first_s"] > 0 and "session log" in pad["map_owner_s_source"]
+    # chosen-message IKNP: 16 bytes a pad bit up, 32 down; the labels 16 each on
+    assert pad["mapowner_to_garbler"] >= 16 * 576 and pad["garbler_to_mapowner"] >= 32 * 576
+    assert 16 * 576 <= pad["mapowner_to_evaluator"] < 16 * 576 + 2_000
+    per_iteration, per_frame = row["traffic_per_iteration"], row["traffic_per_frame"]
+    assert per_iteration["garbler_to_evaluator"] >= 2 * LABEL_BYTES * plain["and"]
+    assert all(per_iteration[k] > 0 for k in per_iteration)
+    assert all(per_frame[k] > 0 for k in per_frame)
+    assert per_frame["mapowner_to_client"] == selection["bytes_to_device"]
+    assert row["pose_equals_cleartext"] and row["status"] == "converged"
+    assert row["pose_equals_first_setting"] and row["plain_frame_median_s"] > 0
+
+
+def test_service_bench_map_points_that_do_not_fit_are_usage_errors():
+    for extra in (["--solve", "client"], ["--garbler", "127.0.0.1:1"], ["--clients", "2"]):
+        out = _bench("--points", "6", "--map-points", "64", *extra)
+        assert out.returncode == 2 and "--map-points" in out.stderr, extra
+    out = _bench("--points", "64", "--map-points", "10")
+    assert out.returncode == 2 and "must hold" in out.stderr
