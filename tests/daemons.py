@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -44,3 +45,11 @@ def session_outcomes(log: Path) -> list[str]:
     """The outcome of every session line in a daemon's log, in order."""
     return [json.loads(line)["outcome"] for line in log.read_text().splitlines()
             if '"event": "session"' in line]
+
+
+def sigint_default() -> None:
+    """``preexec_fn`` for a child that a test interrupts with SIGINT: it gets SIGINT as a
+    terminal's Ctrl-C would reach it, also when this test run was started in the
+    background by a non-interactive shell, which starts its jobs with SIGINT ignored (and
+    children inherit that: Python then installs no KeyboardInterrupt handler)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

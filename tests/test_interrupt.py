@@ -10,6 +10,7 @@ import sys
 import time
 
 import pytest
+from daemons import sigint_default
 from shared_paths import EXAMPLES
 
 from snail_client.embedded import embedded_services
@@ -29,7 +30,8 @@ def test_ctrl_c_in_the_client_is_one_line_and_exit_130(tmp_path):
     proc = subprocess.Popen(
         [sys.executable, "-m", "snail_client", "localize", "--input",
          str(EXAMPLES / "synthetic_n6.json"), "--min-invocations", "10000"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=sigint_default)
     time.sleep(8)  # the embedded servers are up and runs are under way
     proc.send_signal(signal.SIGINT)
     _wait_for(proc)

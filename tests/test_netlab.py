@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from daemons import sigint_default
 from shared_paths import EXAMPLES
 
 from snail_bench.netlab.namespaces import Lab, LabUnavailable, Shape, check_capable, netns_list
@@ -108,7 +109,8 @@ def test_teardown_when_interrupted_mid_run(sig):
     proc = subprocess.Popen([sys.executable, "-m", "snail_bench.cli", "-q", "netem",
                              "--points", "6", "--repeat", "1000", "--no-baseline",
                              "--measure-seconds", "0.2", "--server-delay-ms", "5"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=sigint_default)
     prefix = f"snail-{proc.pid}-"
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and proc.poll() is None:
