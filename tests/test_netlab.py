@@ -17,7 +17,14 @@ import pytest
 from daemons import sigint_default
 from shared_paths import EXAMPLES
 
-from snail_bench.netlab.namespaces import Lab, LabUnavailable, Shape, check_capable, netns_list
+from snail_bench.netlab.namespaces import (
+    Lab,
+    LabUnavailable,
+    Shape,
+    check_capable,
+    netns_list,
+    reap_stale,
+)
 from snail_bench.netlab.services import lab_services
 
 
@@ -139,3 +146,22 @@ def _service_running(pid: int) -> bool:
     out = subprocess.run(["ps", "-o", "args=", "--ppid", str(pid)], capture_output=True,
                          text=True).stdout
     return "service" in out
+
+
+def test_a_lab_left_by_a_killed_process_is_removed_by_the_next():
+    """SIGKILL gives a lab no chance to tear down (a CI run lost 4 namespaces and a wire
+    process so); the next lab deletes namespaces whose owner pid is gone."""
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    name = f"snail-{gone.pid}-0-client"
+    subprocess.run(["ip", "netns", "add", name], check=True)
+    inside = subprocess.Popen(["ip", "netns", "exec", name, "sleep", "300"])
+    try:
+        time.sleep(0.3)
+        assert name in netns_list()
+        assert name in reap_stale()
+        assert name not in netns_list()
+        assert inside.wait(5) == -signal.SIGKILL
+    finally:
+        inside.kill()
+        subprocess.run(["ip", "netns", "del", name], capture_output=True)

@@ -7,7 +7,8 @@ A link ``X_Y`` is two veth pairs through a fourth, middle namespace (the wire):
 namespace has a route out. Rate is tbf on both endpoints (each direction its own bucket);
 delay, jitter and loss are applied by the wire process (``wire.py``: this kernel has no
 netem). Namespace names carry the pid, so concurrent labs never meet and a lab left by a
-killed process can be told by its owner.
+killed process (SIGKILL leaves no chance to tear down) is told by its owner being gone:
+a new lab removes such leftovers first (``reap_stale``).
 
 ``Lab`` is a context manager: leaving it by any path (an exception, Ctrl-C, SIGTERM)
 stops the processes it started and deletes every namespace it made, which takes their
@@ -16,6 +17,7 @@ veths and qdiscs with them; ``leftovers()`` says what would remain.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -97,6 +99,35 @@ def netns_list() -> list[str]:
     return [line.split()[0] for line in _run("ip", "netns", "list").splitlines() if line]
 
 
+_LAB_NAMESPACE = re.compile(r"snail-(\d+)-\d+-(?:client|garbler|evaluator|wire)")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def reap_stale() -> list[str]:
+    """Delete the namespaces of labs whose process is gone, after killing what still runs
+    in them (daemons, the wire); the names deleted."""
+    reaped = []
+    for name in netns_list():
+        found = _LAB_NAMESPACE.fullmatch(name)
+        if found is None or _alive(int(found[1])):
+            continue
+        for pid in _run("ip", "netns", "pids", name).split():
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(int(pid), signal.SIGKILL)
+        if subprocess.run(("ip", "netns", "del", name), capture_output=True).returncode == 0:
+            reaped.append(name)
+    return reaped
+
+
 class Lab:
     """The namespaces, links, wire process and daemons of one lab (see the module doc)."""
 
@@ -136,6 +167,10 @@ class Lab:
     # life cycle ------------------------------------------------------------------------
     def __enter__(self) -> Lab:
         check_capable()
+        reaped = reap_stale()
+        if reaped:
+            print(f"netlab: removed {len(reaped)} namespaces left by a killed lab: "
+                  f"{', '.join(reaped)}", file=sys.stderr)
         if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
             self._old_sigterm = signal.signal(signal.SIGTERM, _sigterm_to_exit)
         try:
