@@ -278,7 +278,7 @@ class EvaluatorDaemon(Daemon):
             if n_owner:
                 s.owner = LabelAssembler("owner_labels", n_owner)
                 for msg, size in self.owner_early.take(s.sid):
-                    self._add_owner_labels(s, msg, size)
+                    self._add_labels(s, msg, size, owner=True)
             self._arm(s)
             early, s.early, s.early_bytes = s.early, [], 0
             for msg, size in early:
@@ -301,10 +301,12 @@ class EvaluatorDaemon(Daemon):
             return
         self._add_labels(s, msg, size)
 
-    def _add_labels(self, s: Session, msg: dict[str, Any], size: int) -> None:
+    def _add_labels(self, s: Session, msg: dict[str, Any], size: int,
+                    owner: bool = False) -> None:
+        """One chunk of the client's input labels (or, ``owner``, of the map owner's)."""
         s.bytes_in += size
         try:
-            s.labels.add(msg)
+            (s.owner if owner else s.labels).add(msg)
         except ProtocolError as exc:
             self._fail(s, exc)
             return
@@ -327,7 +329,7 @@ class EvaluatorDaemon(Daemon):
             if kind == "owner_labels":
                 s = self.sessions.get(msg["sid"])
                 if s is not None and s.owner is not None:
-                    self._add_owner_labels(s, msg, size)
+                    self._add_labels(s, msg, size, owner=True)
                 else:
                     self.owner_early.add(msg, size)
             elif kind == "health_request":
@@ -337,15 +339,6 @@ class EvaluatorDaemon(Daemon):
             else:
                 raise ProtocolError(UNEXPECTED, f"the map owner may not send {kind} to the "
                                                 "evaluator")
-
-    def _add_owner_labels(self, s: Session, msg: dict[str, Any], size: int) -> None:
-        s.bytes_in += size
-        try:
-            s.owner.add(msg)
-        except ProtocolError as exc:
-            self._fail(s, exc)
-            return
-        self._check_inputs(s)
 
     def finish(self, peer: str, record: dict) -> None:
         """A session ended: map-owner labels still waiting for it go too."""
