@@ -33,9 +33,10 @@ def scene(seed: int, index: int, planar_share: float):
 
 
 def sweep(scenes: int, algorithm: str, seed: int = 1, planar_share: float = 0.25,
-          solve: str | None = None, tick: Callable[[], None] = lambda: None) -> dict:
+          solve: str | None = None, arith: str | None = None,
+          tick: Callable[[], None] = lambda: None) -> dict:
     """Localize ``scenes`` random scenes; the pass rate and every failure."""
-    options = Options(algorithm, solve=solve, min_invocations=0)
+    options = Options(algorithm, solve=solve, min_invocations=0, arith=arith)
     backend = MirrorBackend()
     failures, passed, by_planar = [], 0, {"planar": [0, 0], "general": [0, 0]}
     iterations = []
@@ -56,7 +57,8 @@ def sweep(scenes: int, algorithm: str, seed: int = 1, planar_share: float = 0.25
                              "iterations": result.iterations,
                              "converged": bool(result.converged)})
         tick()
-    return {"algorithm": algorithm, "solve": options.solve or "client", "scenes": scenes,
+    return {"algorithm": algorithm, "solve": options.solve_at, "arith": options.arith_used,
+            "scenes": scenes,
             "seed": seed, "planar_share": planar_share, "passed": passed,
             "pass_rate": round(passed / scenes, 5),
             "passed_by_kind": {k: {"passed": v[0], "scenes": v[1]} for k, v in

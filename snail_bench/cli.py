@@ -49,6 +49,10 @@ def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
     ctx.obj = {"verbose": verbose, "quiet": quiet}
 
 
+ARITH_HELP = ("Per-point arithmetic of the client-solve circuit: fixed (default; integer "
+              "Jacobian and sums, float32 residuals and cost) or float (narrow floats).")
+
+
 @main.command()
 @click.argument("file", type=click.Path(exists=True, dir_okay=False))
 @click.option("--input", "inputs", multiple=True, required=True, metavar="INT",
@@ -132,14 +136,15 @@ def ops(as_json: bool) -> None:
                    "the client solves; circuit (forced for do): the paper's in-circuit solve.")
 @click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt", show_default=True,
               help="Linear solver for the 6x6 step inside the circuit (--solve circuit).")
+@click.option("--arith", type=click.Choice(["fixed", "float"]), help=ARITH_HELP)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def circuit(algorithm: str, mode: str, points: int, solve: str | None, solver: str,
-            as_json: bool) -> None:
+            arith: str | None, as_json: bool) -> None:
     """AND/XOR gates, AND-depth, schedule steps and build time of a localization circuit."""
     from .circuit import circuit_report
 
     try:
-        spec = _spec(algorithm, mode, solve, solver, points)
+        spec = _spec(algorithm, mode, solve, solver, points, arith)
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     _emit(circuit_report(spec), as_json)
@@ -201,9 +206,10 @@ def engine(schemes: tuple[str, ...], as_json: bool) -> None:
               "gates (0: it is an OT, no circuit), the map owner's OT time per invocation "
               "and selection time per frame (from its session log) and bytes per link. "
               "Embedded daemons only; implies --solve circuit, --algorithm lm, --mode sil.")
+@click.option("--arith", type=click.Choice(["fixed", "float"]), help=ARITH_HELP)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def service(algorithm: str, mode: str, solve: str | None, solver: str,
-            points: tuple[int, ...], repeat: int,
+            arith: str | None, points: tuple[int, ...], repeat: int,
             garbler: str | None, evaluator: str | None, tls_dir: str | None,
             clients: int, lane_window_ms: float | None, scheme: str,
             map_points: tuple[int, ...], as_json: bool) -> None:
@@ -220,7 +226,8 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
         return
     try:
         check_addresses(garbler, evaluator, tls_dir)
-        specs = [_spec(algorithm, mode, solve, solver, n) for n in points or SERVICE_POINTS]
+        specs = [_spec(algorithm, mode, solve, solver, n, arith)
+                 for n in points or SERVICE_POINTS]
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     from snail_client.secure import ServiceError
@@ -391,6 +398,7 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
 @click.option("--solve", type=click.Choice(["client", "circuit"]), default="client",
               show_default=True, help="Which circuit family's mirror: the normal equations "
                                       "solved by the client, or the in-circuit solve.")
+@click.option("--arith", type=click.Choice(["fixed", "float"]), help=ARITH_HELP)
 @click.option("--planar-share", type=click.FloatRange(0, 1), default=0.25, show_default=True,
               help="Share of scenes whose points lie on one tilted plane (a tag, a wall).")
 @click.option("--seed", type=int, default=1, show_default=True,
@@ -398,7 +406,7 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.pass_context
 def accuracy(ctx: click.Context, scenes: int, algorithms: tuple[str, ...], solve: str,
-             planar_share: float, seed: int, as_json: bool) -> None:
+             arith: str | None, planar_share: float, seed: int, as_json: bool) -> None:
     """How often the client's LM/GN loop, on the circuits' bit-exact float32 mirror, ends
     within max(0.01 px, 0.5 %) of the reprojection RMS of OpenCV's iterative solvePnP from
     the same initial pose; lists every scene that does not. Exit 1 below 99.9 % (LM) or
@@ -412,7 +420,7 @@ def accuracy(ctx: click.Context, scenes: int, algorithms: tuple[str, ...], solve
     quiet = bool(ctx.obj and ctx.obj.get("quiet"))
     with bar(scenes * len(algorithms), "accuracy", quiet, "scene") as progress:
         for algorithm in algorithms:
-            report[algorithm] = sweep(scenes, algorithm, seed, planar_share, solve,
+            report[algorithm] = sweep(scenes, algorithm, seed, planar_share, solve, arith,
                                       lambda: progress.update(1))
             if report[algorithm]["pass_rate"] < ACCURACY_TARGETS[algorithm]:
                 short.append(algorithm)
@@ -476,11 +484,13 @@ def fuzz_cmd(targets: tuple[str, ...], runs: int, seconds: int, corpus: Path | N
         sys.exit(1)
 
 
-def _spec(algorithm: str, mode: str, solve: str | None, solver: str, points: int):
+def _spec(algorithm: str, mode: str, solve: str | None, solver: str, points: int,
+          arith: str | None = None):
     """The circuit the client would run with these choices (pipeline.Options decides)."""
     from snail_common.loc.pipeline import Options
 
-    return Options(algorithm=algorithm, mode=mode, solver=solver, solve=solve).spec(points)
+    return Options(algorithm=algorithm, mode=mode, solver=solver, solve=solve,
+                   arith=arith).spec(points)
 
 
 @main.command()

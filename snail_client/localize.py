@@ -131,7 +131,7 @@ def record(result: Localized, options: Options, traffic: dict[str, int],
         "invocations": result.invocations, "cost": float(result.cost),
         "rms_px": result.rms_px,
         "algorithm": options.algorithm, "mode": options.mode, "solve": options.solve_at,
-        "solver": options.solver, "backend": options.backend,
+        "arith": result.spec.arith, "solver": options.solver, "backend": options.backend,
         "timing": {"total_s": result.total_s, "per_iteration_s": result.walls},
         "traffic": traffic,
     }

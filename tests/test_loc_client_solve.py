@@ -30,7 +30,7 @@ def test_one_circuit_serves_lm_and_gn_and_its_id_round_trips():
         Spec("lm", "do", "client", N)
     with pytest.raises(ValueError, match="--solve client: --mode do"):
         Options(mode="do", solve="client")
-    assert Options().spec(6).circuit_id == "ne-sil-n6"
+    assert Options(arith="float").spec(6).circuit_id == "ne-sil-n6"
     assert Options(mode="do").spec(6).circuit_id == "lm-do-ldlt-n6"
     assert Options(solve="circuit").spec(6).circuit_id == "lm-sil-ldlt-n6"
 

@@ -19,8 +19,8 @@ def _bench(*args: str) -> subprocess.CompletedProcess:
 def test_service_bench_reports_measured_runs():
     out = _bench("--points", "4", "--repeat", "2", "--json")
     assert out.returncode == 0, out.stderr
-    row = json.loads(out.stdout)["service"]["ne-sil-n4"]  # the client solves, by default
-    iface = registry.interface(Spec(solver="client", points=4).registry_id)
+    row = json.loads(out.stdout)["service"]["nx-sil-n4"]  # the client solves, by default
+    iface = registry.interface(Spec(solver="client", points=4, arith="fixed").registry_id)
     assert (row["and"], row["depth"], row["repeat"]) == (iface.counts["and"], iface.depth, 2)
     assert 0 < row["min_s"] <= row["median_s"] <= row["max_s"]
     assert row["first_s"] > 0

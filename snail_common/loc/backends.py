@@ -23,6 +23,7 @@ from snail_common.circuit.schedule import Schedule
 from snail_common.pnp import family
 from snail_common.pnp.do import do_reference, normal_equations64, pinv_solve64
 from snail_common.pnp.normal import UPPER
+from snail_common.pnp.normal_fixed import decode, weights_fixed
 from snail_common.pnp.sil import CLIENT
 from snail_common.pnp.spec import Spec, run_mirror
 
@@ -57,7 +58,10 @@ def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> Value
               "weights": weights}
     if spec.algorithm == "lm" and spec.solver != CLIENT:
         values["lam"] = lam
-    return {k: np.asarray(v, np.float64) for k, v in values.items()}
+    values = {k: np.asarray(v, np.float64) for k, v in values.items()}
+    if spec.arith == "fixed":
+        values["wfix"] = weights_fixed(values["weights"])
+    return values
 
 
 class Backend:
@@ -69,9 +73,13 @@ class Backend:
         self.invocations = 0
 
     def run(self, spec: Spec, values: Values) -> Values:
-        """One invocation of the circuit of ``spec`` on named inputs: its named outputs."""
+        """One invocation of the circuit of ``spec`` on named inputs: its named outputs
+        (a fixed-point circuit's decoded to the float circuit's)."""
         self.invocations += 1
-        return self._run(spec, values)
+        out = self._run(spec, values)
+        if spec.arith == "fixed" and "ec" in out:
+            return decode(values["weights"], out)
+        return out
 
     def _run(self, spec: Spec, values: Values) -> Values:
         raise NotImplementedError

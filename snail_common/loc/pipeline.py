@@ -13,7 +13,8 @@ stops early. A DO frame is always one invocation, whatever the data.
 Where the 6x6 system is solved (``solve``): by default in SIL mode the circuit returns
 the normal equations and the client damps and solves them (sil.py says why that is safe
 in the offload setting); ``circuit`` solves inside, as the paper does, and is the only
-choice for DO.
+choice for DO. The client-solve circuit computes its per-point sums in fixed point by
+default (``arith``, normal_fixed.py), or in narrow floats as before.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from snail_common.pnp.normal import UPPER
-from snail_common.pnp.sil import CLIENT
+from snail_common.pnp.sil import ARITHS, CLIENT
 from snail_common.pnp.spec import DO_ITERATIONS, DO_MAX_ITERATIONS, Spec
 
 from .backends import Backend, sil_values
@@ -52,6 +53,7 @@ class Options:
     pad_points: int = 0  # round n up to a multiple of this (0: no padding)
     do_iterations: int = DO_ITERATIONS
     solve: str | None = None  # client or circuit; None: client for sil, circuit for do
+    arith: str | None = None  # the client-solve circuit's per-point work; None: fixed
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -67,6 +69,11 @@ class Options:
             raise ValueError(f"--do-iterations: must be in 1..{DO_MAX_ITERATIONS}")
         if self.solve not in (None, *SOLVES):
             raise ValueError(f"--solve: expected client or circuit, got {self.solve!r}")
+        if self.arith not in (None, *ARITHS):
+            raise ValueError(f"--arith: expected fixed or float, got {self.arith!r}")
+        if self.arith == "fixed" and self.solve_at != "client":
+            raise ValueError("--arith fixed: only the client-solve circuit has it "
+                             "(use --solve client with --mode sil)")
         if self.mode == "do" and self.solve == "client":
             raise ValueError("--solve client: --mode do solves inside its circuit "
                              "(use --solve circuit)")
@@ -75,6 +82,14 @@ class Options:
     def solve_at(self) -> str:
         """Where the step is solved: the client (default for sil) or the circuit."""
         return self.solve or ("circuit" if self.mode == "do" else "client")
+
+    @property
+    def arith_used(self) -> str:
+        """The client-solve circuit's arithmetic (fixed unless asked otherwise); the
+        in-circuit solve is float."""
+        if self.solve_at != "client":
+            return "float"
+        return self.arith or "fixed"
 
     def circuit_points(self, n: int) -> int:
         if self.pad_points <= 1:
@@ -85,7 +100,8 @@ class Options:
         """The circuit a problem of ``n`` points runs on."""
         iterations = self.do_iterations if self.mode == "do" else DO_ITERATIONS
         solver = CLIENT if self.solve_at == "client" else self.solver
-        return Spec(self.algorithm, self.mode, solver, self.circuit_points(n), iterations)
+        return Spec(self.algorithm, self.mode, solver, self.circuit_points(n), iterations,
+                    arith=self.arith_used)
 
 
 @dataclass(frozen=True)

@@ -15,31 +15,46 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from .fixed import TC
 from .fops import F, stack
 from .ldlt import ldlt_solve
 from .normal import UPPER, normal_equations
+from .normal_fixed import W_W, normal_equations_fixed
 from .svd import pinv_step, svd_solve, weighted_system
 
 ALGORITHMS = ("lm", "gn")
 CLIENT = "client"
 SOLVERS = ("ldlt", "svd", CLIENT)
+ARITHS = ("float", "fixed")  # the client-solve circuit's per-point arithmetic
 _DIAG = [UPPER.index((i, i)) for i in range(6)]
 
 
-def input_shapes(algorithm: str, n: int, solver: str = "ldlt") -> dict[str, tuple[int, ...]]:
-    """Secret inputs of a SIL circuit, all float32: pose, damping (LM solved in the
-    circuit only), normalized image points, centered map points and per-point per-axis
-    weights."""
+def input_shapes(algorithm: str, n: int, solver: str = "ldlt",
+                 arith: str = "float") -> dict[str, tuple[int, ...]]:
+    """Secret inputs of a SIL circuit, float32 unless INPUT_TYPES says otherwise: pose,
+    damping (LM solved in the circuit only), normalized image points, centered map
+    points, per-point per-axis weights, and for fixed arithmetic the same weights as
+    integers (normal_fixed.py)."""
     shapes = {"R": (3, 3), "t": (3,)}
     if algorithm == "lm" and solver != CLIENT:
         shapes["lam"] = ()
     shapes.update({"image": (n, 2), "world": (n, 3), "weights": (n, 2)})
+    if arith == "fixed":
+        shapes["wfix"] = (n, 2)
     return shapes
+
+
+# (dtype, bits) of the inputs that are not float32, and the fixed-point circuit's outputs
+INPUT_TYPES = {"wfix": ("uint16", W_W)}
+FIXED_OUTPUT_TYPES = {"hess": "int64", "grad": "int64", "cost": "int64", "ek": "uint8",
+                      "ec": "uint8", "er": "uint8"}
 
 
 OUTPUT_SHAPES = {"step": (6,), "cost": ()}
 # J^T W J packed as normal.UPPER, J^T W r and the cost
 NORMAL_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": ()}
+# the same in fixed point, with the block exponents that scale them (normal_fixed.py)
+FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ek": (), "ec": (), "er": ()}
 
 Solver = Callable[[F, F], F]
 
@@ -59,11 +74,18 @@ def damped(hess: F, lam: F) -> F:
     return stack(parts)
 
 
-def sil_program(inputs: dict[str, F], algorithm: str, solver: str) -> dict[str, F]:
+def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
+                arith: str = "float") -> dict[str, F | TC]:
     """One iteration: the step solving (H [+ lam diag H]) step = -g, and the cost, at the
     input pose."""
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
+    if solver == CLIENT and arith == "fixed":
+        hess, grad, cost, ek, ec, er = normal_equations_fixed(
+            inputs["R"], inputs["t"], inputs["image"], inputs["world"], inputs["weights"],
+            inputs["wfix"].v)
+        return {"hess": hess, "grad": grad, "cost": cost,
+                **{name: TC(e, 8) for name, e in (("ek", ek), ("ec", ec), ("er", er))}}
     if solver == CLIENT:
         hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
                                             inputs["world"], inputs["weights"])

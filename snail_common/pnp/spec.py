@@ -29,7 +29,11 @@ from .do import do_program
 from .fops import CircuitBackend, F, MirrorBackend
 from .sil import (
     ALGORITHMS,
+    ARITHS,
     CLIENT,
+    FIXED_OUTPUT_SHAPES,
+    FIXED_OUTPUT_TYPES,
+    INPUT_TYPES,
     NORMAL_OUTPUT_SHAPES,
     OUTPUT_SHAPES,
     SOLVERS,
@@ -45,7 +49,7 @@ MAX_POINTS = 4096
 SHALLOW_POINTS = 32
 ID_PATTERN = re.compile(r"^(?:(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"
                         r"-n(?P<points>[1-9][0-9]{0,3})(?:-i(?P<iterations>[1-9][0-9]?))?"
-                        r"(?P<owner>-mo)?|ne-sil-n(?P<normal_points>[1-9][0-9]{0,3}))$")
+                        r"(?P<owner>-mo)?|n(?P<arith>[ex])-sil-n(?P<normal_points>[1-9][0-9]{0,3}))$")
 MASKED = "world_masked"  # the device's share of the map points: float32 bits ^ pad
 OWNER_PAD = "world_pad"  # the map owner's share: the pad, its last input group
 
@@ -62,6 +66,7 @@ class Spec:
     points: int = 6
     iterations: int = DO_ITERATIONS
     owner: bool = False  # map points as device and map-owner shares (module doc)
+    arith: str = "float"  # the client-solve circuit's per-point work (normal_fixed.py)
 
     def __post_init__(self) -> None:
         if self.algorithm not in ALGORITHMS:
@@ -83,6 +88,10 @@ class Spec:
         if self.mode == "sil" and self.iterations != DO_ITERATIONS:
             raise ValueError("iterations: a SIL circuit runs one iteration (only 'do' takes "
                              "an iteration count)")
+        if self.arith not in ARITHS:
+            raise ValueError(f"arith must be one of {ARITHS}, got {self.arith!r}")
+        if self.arith == "fixed" and self.solver != CLIENT:
+            raise ValueError("arith 'fixed' is the client-solve circuit's (solver 'client')")
         if self.owner and (self.mode != "sil" or self.solver == CLIENT):
             raise ValueError("the map-owner variant is a SIL circuit that solves inside "
                              "(the normal equations would reveal the map)")
@@ -90,7 +99,7 @@ class Spec:
     @property
     def circuit_id(self) -> str:
         if self.solver == CLIENT:
-            return f"ne-sil-n{self.points}"
+            return f"n{'x' if self.arith == 'fixed' else 'e'}-sil-n{self.points}"
         base = f"{self.algorithm}-{self.mode}-{self.solver}-n{self.points}"
         if self.owner:
             return f"{base}-mo"
@@ -108,7 +117,8 @@ class Spec:
             raise ValueError(f"not a localization circuit id: {circuit_id!r} "
                              f"(expected e.g. 'lm-sil-ldlt-n6')")
         if match["normal_points"]:
-            return cls("lm", "sil", CLIENT, int(match["normal_points"]))
+            return cls("lm", "sil", CLIENT, int(match["normal_points"]),
+                       arith="fixed" if match["arith"] == "x" else "float")
         iterations = int(match["iterations"] or DO_ITERATIONS)
         return cls(match["algorithm"], match["mode"], match["solver"], int(match["points"]),
                    iterations, owner=bool(match["owner"]))
@@ -118,19 +128,30 @@ def build(spec: Spec) -> Circuit:
     """Emit the circuit of ``spec`` (seconds for hundreds of points; cache it)."""
     b = CircuitBuilder()
     be = CircuitBackend(b, depth_opt=spec.points <= SHALLOW_POINTS)
-    inputs = {name: F(be, b.input(MASKED if spec.owner and name == "world" else name,
-                                  shape, bits=32,
-                                  dtype="uint32" if spec.owner and name == "world"
-                                  else "float32"))
+    inputs = {name: F(be, _input(b, spec, name, shape))
               for name, shape in input_shapes(spec.algorithm, spec.points,
-                                              spec.solver).items()}
+                                              spec.solver, spec.arith).items()}
     if spec.owner:  # the shares meet in free XOR gates
         pad = b.input(OWNER_PAD, (spec.points, 3), bits=32, dtype="uint32")
         inputs["world"] = F(be, b.xor(inputs["world"].v, pad))
     outputs = program(spec, inputs)
     for name in output_shapes(spec):
-        b.output(name, outputs[name].v, dtype="float32")
+        b.output(name, outputs[name].v, dtype=output_dtype(spec, name))
     return b.build()
+
+
+def _input(b: CircuitBuilder, spec: Spec, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """An input group's wires: float32 words, the device's masked share of the map, or
+    an integer group of INPUT_TYPES."""
+    if spec.owner and name == "world":
+        return b.input(MASKED, shape, bits=32, dtype="uint32")
+    dtype, bits = INPUT_TYPES.get(name, ("float32", 32))
+    return b.input(name, shape, bits=bits, dtype=dtype)
+
+
+def output_dtype(spec: Spec, name: str) -> str:
+    """float32, but the fixed-point circuit returns integers and exponents."""
+    return FIXED_OUTPUT_TYPES[name] if spec.arith == "fixed" else "float32"
 
 
 def output_shapes(spec: Spec) -> dict[str, tuple[int, ...]]:
@@ -138,13 +159,15 @@ def output_shapes(spec: Spec) -> dict[str, tuple[int, ...]]:
     to solve); DO: the final pose and its cost."""
     if spec.mode == "do":
         return DO_OUTPUT_SHAPES
-    return NORMAL_OUTPUT_SHAPES if spec.solver == CLIENT else OUTPUT_SHAPES
+    if spec.solver == CLIENT:
+        return FIXED_OUTPUT_SHAPES if spec.arith == "fixed" else NORMAL_OUTPUT_SHAPES
+    return OUTPUT_SHAPES
 
 
 def program(spec: Spec, inputs: dict[str, F]) -> dict[str, F]:
     if spec.mode == "do":
         return do_program(inputs, spec.solver, spec.iterations)
-    return sil_program(inputs, spec.algorithm, spec.solver)
+    return sil_program(inputs, spec.algorithm, spec.solver, spec.arith)
 
 
 def owner_bits(circuit: Circuit | Interface) -> int:
@@ -161,11 +184,13 @@ def run_mirror(spec: Spec, values: dict[str, np.ndarray]) -> dict[str, np.ndarra
         shares = np.asarray(values[MASKED], np.uint32) ^ np.asarray(values[OWNER_PAD],
                                                                      np.uint32)
         values = {**values, "world": shares.view(np.float32)}
-    shapes = input_shapes(spec.algorithm, spec.points, spec.solver)
+    shapes = input_shapes(spec.algorithm, spec.points, spec.solver, spec.arith)
     missing = sorted(set(shapes) - set(values))
     if missing:
         raise ValueError(f"missing inputs {missing}")
-    inputs = {name: F(be, np.asarray(values[name], np.float32).reshape(shape))
+    inputs = {name: F(be, np.asarray(values[name], np.int64 if name in INPUT_TYPES
+                                     else np.float32).reshape(shape))
               for name, shape in shapes.items()}
     outputs = program(spec, inputs)
-    return {name: np.asarray(outputs[name].v, np.float32) for name in output_shapes(spec)}
+    return {name: np.asarray(outputs[name].v, output_dtype(spec, name))
+            for name in output_shapes(spec)}

@@ -1,0 +1,212 @@
+"""Fixed-point arithmetic for the per-point normal equations, on either backend.
+
+The Jacobian, J^T W J and J^T W r only steer the step: an error there slows convergence
+or moves the fixed point J^T W r = 0 by a small fraction of the pose's own uncertainty
+(normal.py), so they need about 13 significant bits, not float32. Integer products of
+that width cost about a third of a narrow float product, and integer sums over points
+cost one AND per bit against ~350 for a narrow float add. Values are sign-magnitude
+(``SM``: a sign wire and an unsigned magnitude word) through the products, whose signs
+are then free XORs, and two's complement (``TC``) through the sums.
+
+Floats enter with an exponent that is public (``from_float`` at a fixed scale,
+saturating above it) or shared by a block of values (``block_emax``: the largest exponent
+of the block, one secret per block, returned to the client with the sums), the block
+floating point that keeps inverse depths and residuals of any magnitude at full
+precision relative to the block's largest.
+
+Every operation is exact integer arithmetic on truncated magnitudes, so the numpy
+mirror (``FixMirror``) is bit-identical to the circuit (``FixCircuit``) by construction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from snail_common.arith import integer, multiply, shift
+from snail_common.arith.words import broadcast_lead, const, or_all, sext, zext
+
+from .fops import F, MirrorBackend
+
+
+@dataclass(frozen=True)
+class SM:
+    """A sign-magnitude array: ``s`` the signs, ``m`` the magnitudes, ``w`` their width
+    in bits (mirror: int64 arrays; circuit: wires, magnitudes with a trailing bit axis)."""
+
+    s: np.ndarray
+    m: np.ndarray
+    w: int
+
+    def __getitem__(self, idx) -> SM:
+        return SM(self.s[idx], self.m[idx], self.w)
+
+
+@dataclass(frozen=True)
+class TC:
+    """A two's complement array of ``w`` bits (mirror: int64; circuit: wires)."""
+
+    v: np.ndarray
+    w: int
+
+
+class FixMirror:
+    """numpy int64: the specification of every circuit below."""
+
+    def block_emax(self, x: F) -> np.ndarray:
+        """The largest biased exponent over all of ``x`` (a 0-d int64)."""
+        return np.int64(_exponent(x.v).max())
+
+    def from_float(self, x: F, emax, width: int) -> SM:
+        """x as ``width``-bit magnitudes at scale 2^(emax - width - 126); above that
+        scale (e > emax, only with a public emax) the magnitude saturates."""
+        bits = np.asarray(x.v, np.float32).view(np.uint32).astype(np.int64)
+        e = (bits >> 23) & 0xFF
+        sig = np.where(e != 0, (bits & 0x7FFFFF) | (1 << 23), bits & 0x7FFFFF)
+        top = sig >> (24 - width)
+        d = np.int64(emax) - e
+        mag = np.where(d >= width, 0, top >> np.clip(d, 0, width - 1))
+        mag = np.where(d < 0, (1 << width) - 1, mag)
+        return SM(bits >> 31, mag.astype(np.int64), width)
+
+    def unsigned(self, x, width: int) -> SM:
+        """Non-negative integers (an input) as magnitudes."""
+        m = np.asarray(x, np.int64)
+        return SM(np.zeros_like(m), m, width)
+
+    def zeros_tc(self, lead: tuple[int, ...], width: int) -> TC:
+        return TC(np.zeros(lead, np.int64), width)
+
+    def index_tc(self, x: TC, idx) -> TC:
+        return TC(x.v[idx], x.w)
+
+    def stack_tc(self, xs: list[TC], axis: int) -> TC:
+        return TC(np.stack([x.v for x in xs], axis), max(x.w for x in xs))
+
+    def insert_zero(self, x: TC, pos: int) -> TC:
+        """A constant 0 inserted at ``pos`` of a 1-d array."""
+        return TC(np.insert(x.v, pos, 0), x.w)
+
+    def neg(self, x: SM) -> SM:
+        return SM(x.s ^ 1, x.m, x.w)
+
+    def mul(self, x: SM, y: SM, drop: int, width: int) -> SM:
+        """Signs XORed; magnitudes (|x| |y|) >> drop, kept to ``width`` bits."""
+        return SM(x.s ^ y.s, ((x.m * y.m) >> drop) & ((1 << width) - 1), width)
+
+    def add_const(self, x: SM, k: int, width: int) -> SM:
+        """|x| + k for a non-negative x (its sign is kept)."""
+        return SM(x.s, (x.m + k) & ((1 << width) - 1), width)
+
+    def twos(self, x: SM) -> TC:
+        return TC(np.where(x.s == 1, -x.m, x.m), x.w + 1)
+
+    def stack(self, xs: list[SM], axis: int) -> SM:
+        return SM(np.stack([x.s for x in xs], axis), np.stack([x.m for x in xs], axis),
+                  max(x.w for x in xs))
+
+    def concat_tc(self, xs: list[TC], axis: int) -> TC:
+        return TC(np.concatenate([x.v for x in xs], axis), max(x.w for x in xs))
+
+    def sum_tc(self, x: TC) -> TC:
+        """Sum over axis 0 (exact: any order gives the same integer)."""
+        levels = max(int(x.v.shape[0] - 1).bit_length(), 0)
+        return TC(x.v.sum(axis=0), x.w + levels)
+
+
+def _exponent(v) -> np.ndarray:
+    return (np.asarray(v, np.float32).view(np.uint32).astype(np.int64) >> 23) & 0xFF
+
+
+class FixCircuit:
+    """The same operations as gates into ``builder``."""
+
+    def __init__(self, builder) -> None:
+        self.b = builder
+
+    def block_emax(self, x: F) -> np.ndarray:
+        """Max tree over the 8-bit exponent fields of all of ``x``: one compare (8 AND)
+        and one 8-bit mux per element."""
+        e = np.asarray(x.v)[..., 23:31].reshape(-1, 8)
+        while e.shape[0] > 1:
+            half = e.shape[0] // 2
+            lo, hi = e[:half], e[half:2 * half]
+            bigger = integer.lt(self.b, lo, hi)
+            pair = self.b.mux(bigger[..., None], lo, hi)
+            e = np.concatenate([pair, e[2 * half:]], axis=0)
+        return e[0]
+
+    def from_float(self, x: F, emax, width: int) -> SM:
+        b = self.b
+        v = np.asarray(x.v)
+        e = v[..., 23:31]
+        sig = np.concatenate([v[..., :23], or_all(b, e)[..., None]], axis=-1)
+        top = sig[..., 24 - width:]
+        em = const(int(emax), 9) if isinstance(emax, (int, np.integer)) else zext(emax, 9)
+        d = integer.sub(b, em, zext(e, 9))          # 9-bit two's complement: emax - e
+        stages = (width - 1).bit_length()
+        over = d[..., 8]                            # e > emax: saturate
+        gone = b.and_(or_all(b, d[..., stages:8]), b.not_(over))  # d >= 2^stages >= width
+        mag = shift.shr(b, top, d[..., :stages])    # d in [width, 2^stages) shifts all out
+        mag = b.and_(mag, b.not_(gone)[..., None])
+        mag = b.or_(mag, over[..., None])
+        return SM(v[..., 31], mag, width)
+
+    def unsigned(self, x, width: int) -> SM:
+        m = zext(np.asarray(x), width)
+        return SM(np.zeros(m.shape[:-1], np.int32), m, width)
+
+    def zeros_tc(self, lead: tuple[int, ...], width: int) -> TC:
+        return TC(np.zeros(tuple(lead) + (width,), np.int32), width)
+
+    def index_tc(self, x: TC, idx) -> TC:
+        return TC(np.asarray(x.v)[idx], x.w)
+
+    def stack_tc(self, xs: list[TC], axis: int) -> TC:
+        w = max(x.w for x in xs)
+        return TC(np.stack([sext(x.v, w) for x in xs], axis), w)
+
+    def insert_zero(self, x: TC, pos: int) -> TC:
+        v = np.asarray(x.v)
+        return TC(np.concatenate([v[:pos], np.zeros((1, x.w), np.int32), v[pos:]], 0), x.w)
+
+    def neg(self, x: SM) -> SM:
+        return SM(self.b.not_(x.s), x.m, x.w)
+
+    def mul(self, x: SM, y: SM, drop: int, width: int) -> SM:
+        xm, ym = broadcast_lead(x.m, y.m)
+        prod = multiply.mul(self.b, xm, ym)
+        return SM(self.b.xor(x.s, y.s), zext(prod[..., drop:], width), width)
+
+    def add_const(self, x: SM, k: int, width: int) -> SM:
+        return SM(x.s, integer.add(self.b, zext(x.m, width), const(k, width)), width)
+
+    def twos(self, x: SM) -> TC:
+        return TC(integer.cond_negate(self.b, zext(x.m, x.w + 1), x.s), x.w + 1)
+
+    def stack(self, xs: list[SM], axis: int) -> SM:
+        w = max(x.w for x in xs)
+        return SM(np.stack([np.asarray(x.s) for x in xs], axis),
+                  np.stack([zext(x.m, w) for x in xs], axis), w)
+
+    def concat_tc(self, xs: list[TC], axis: int) -> TC:
+        w = max(x.w for x in xs)
+        return TC(np.concatenate([sext(x.v, w) for x in xs], axis), w)
+
+    def sum_tc(self, x: TC) -> TC:
+        """Pairwise tree over axis 0, one bit wider per level (no overflow)."""
+        v, w = np.asarray(x.v), x.w
+        while v.shape[0] > 1:
+            half = v.shape[0] // 2
+            pair = integer.add_wide(self.b, v[:half], v[half:2 * half], signed=True)
+            rest = sext(v[2 * half:], w + 1)
+            v, w = np.concatenate([pair, rest], axis=0), w + 1
+        return TC(v[0], w)
+
+
+def fix_backend(x: F):
+    """The fixed-point twin of the float backend ``x`` runs on."""
+    if isinstance(x.be, MirrorBackend):
+        return FixMirror()
+    return FixCircuit(x.be.b)

@@ -1,0 +1,136 @@
+"""The normal equations with fixed-point per-point work (circuit ``nx-sil-nN``).
+
+Same quantities as normal.py, computed differently where precision allows (fixed.py):
+- float32 as before: camera points, projections, residuals and the cost, which decides
+  acceptance and must resolve relative changes of 1e-4 (driver.py);
+- fixed point: the Jacobian, J^T W J and J^T W r, at about 13 significant bits, the
+  precision normal.py's narrow floats already had. Projections a, b enter at a public
+  scale (2^-13, saturating at |a| = 2, 63 degrees off the optical axis: only the step of
+  such a point degrades, never the cost); inverse depths and residuals as block floating
+  point, each block sharing its largest exponent, which the circuit returns (``ec``,
+  ``er``) so the client can scale the sums back;
+- the client passes its weights twice: as float32 for the cost, and normalized to a
+  largest weight of 1 as 16-bit integers (``wfix``) for the sums.
+
+Outputs are integers: ``hess`` (21, packed as normal.UPPER) at scale
+2^(s_i + s_k + DROP), ``grad`` (6) at 2^(s_i + sr + DROP), where s is the column scale
+(translation columns: the inverse depths' block scale; rotation columns: 2^-F_A) and sr
+the residuals' block scale (``scales`` computes them; fixed_io.py decodes).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .fixed import SM, TC, fix_backend
+from .fops import F, concat
+from .normal import UPPER, residuals
+
+F_A = 13  # fraction bits of the projections a = x/z, b = y/z
+W_A = 14  # their magnitude bits: |a| < 2
+EMAX_A = W_A + 126 - F_A  # the float exponent at the top of that scale
+W_C = 15  # inverse depths, relative to the largest one
+W_R = 15  # residuals, relative to the largest one
+F_W = 15  # weights: the largest is 2^15
+W_W = 16
+W_COST = 24  # per-point costs, relative to the largest one: every float32 bit of it
+DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
+
+_U_COLS = [0, 2, 3, 4, 5]
+_V_COLS = [1, 2, 3, 4, 5]
+_PAIRS = [(i, k) for i in range(5) for k in range(i, 5)]
+_LEFT = [i for i, _ in _PAIRS]
+_RIGHT = [k for _, k in _PAIRS]
+
+
+def _sources(cols: list[int], entries: list[tuple[int, ...]]) -> list[int | None]:
+    """Index into one row's products (pairs, or single columns) for every entry, None
+    where the row has a structural zero there."""
+    keys = [(cols[i], cols[k]) for i, k in _PAIRS] if len(entries[0]) == 2 else \
+        [(c,) for c in cols]
+    return [keys.index(e) if e in keys else None for e in entries]
+
+
+def _gather(fx, terms: TC, n: int, sources: tuple[list, list]) -> TC:
+    """(2n, entries): each entry's u-row terms over its v-row terms, zero where a row
+    does not touch the entry, so the sum tree's first level adds the two rows."""
+    zero = fx.zeros_tc((n,), terms.w)
+    rows = [fx.stack_tc([zero if idx is None else fx.index_tc(terms, (slice(None), row, idx))
+                         for idx in src], 1) for row, src in enumerate(sources)]
+    return fx.concat_tc(rows, 0)
+
+
+def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
+    """(hess (21,), grad (6,), cost (), ek, ec, er), all integers: module doc. ``wfix`` is the
+    (n, 2) integer weights (mirror: int64; circuit: 16-bit input words)."""
+    proj, err, inv_z = residuals(R, t, image, world)
+    werr = err * weights
+    cost_pt = werr * err
+    fx = fix_backend(R)
+    ek = fx.block_emax(cost_pt)  # the sum: exact integers under one exponent, log depth
+    cost = fx.sum_tc(fx.twos(fx.from_float(concat([cost_pt[:, 0], cost_pt[:, 1]]), ek,
+                                           W_COST)))
+    n = len(proj)
+    a = fx.from_float(proj[:, 0], EMAX_A, W_A)
+    b = fx.from_float(proj[:, 1], EMAX_A, W_A)
+    ec = fx.block_emax(inv_z)
+    c = fx.from_float(inv_z, ec, W_C)
+    er = fx.block_emax(err)
+    r = fx.from_float(err, er, W_R)
+    w = fx.unsigned(wfix, W_W)
+    ac, bc = fx.mul(a, c, F_A, W_C + 1), fx.mul(b, c, F_A, W_C + 1)
+    ab = fx.mul(a, b, F_A, W_A + 1)
+    one_a = fx.add_const(fx.mul(a, a, F_A, W_A + 1), 1 << F_A, W_A + 2)
+    one_b = fx.add_const(fx.mul(b, b, F_A, W_A + 1), 1 << F_A, W_A + 2)
+    ju = fx.stack([c, fx.neg(ac), fx.neg(ab), one_a, fx.neg(b)], 1)
+    jv = fx.stack([c, fx.neg(bc), fx.neg(one_b), ab, a], 1)
+    jac = fx.stack([ju, jv], 1)                                   # (n, 2, 5)
+    wjac = fx.mul(w[:, :, None], jac, F_W, jac.w)
+    pair_w = 2 * jac.w - DROP
+    hpair = fx.twos(fx.mul(wjac[:, :, _LEFT], jac[:, :, _RIGHT], DROP, pair_w))
+    entries = [e for e in UPPER if e != (0, 1)]
+    hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
+    hess = fx.sum_tc(hterms)
+    wr = fx.mul(w, r, F_W, W_R)
+    gpart = fx.twos(fx.mul(jac, wr[:, :, None], DROP, jac.w + W_R - DROP))
+    gentries = [(i,) for i in range(6)]
+    gterms = _gather(fx, gpart, n, (_sources(_U_COLS, gentries), _sources(_V_COLS, gentries)))
+    grad = fx.sum_tc(gterms)
+    hess = fx.insert_zero(hess, UPPER.index((0, 1)))               # ju, jv never both
+    return hess, grad, cost, ek, ec, er
+
+
+def _block_scale(emax, width: int) -> float:
+    """log2 of the unit of a block's magnitudes (fixed.py: from_float)."""
+    return float(int(emax) - width - 126)
+
+
+def scales(ec: int, er: int) -> tuple[np.ndarray, float]:
+    """log2 of each column's scale (6,) and of the residuals' scale, from the block
+    exponents the circuit returned."""
+    sc = _block_scale(ec, W_C)
+    return np.array([sc, sc, sc, -F_A, -F_A, -F_A], float), _block_scale(er, W_R)
+
+
+__all__ = ["SM", "normal_equations_fixed", "scales"]
+
+
+def weights_fixed(weights: np.ndarray) -> np.ndarray:
+    """The ``wfix`` input: the weights normalized to a largest of 2^F_W, rounded."""
+    w = np.asarray(weights, np.float64)
+    top = float(w.max()) if w.size else 0.0
+    if not top > 0.0:
+        return np.zeros(w.shape, np.uint16)
+    return np.rint(w / top * (1 << F_W)).astype(np.uint16)
+
+
+def decode(weights: np.ndarray, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The circuit's integer outputs as float64 J^T W J (packed), J^T W r and the cost, in
+    the units of the float circuit (weights as given, not normalized)."""
+    col, sr = scales(int(out["ec"]), int(out["er"]))
+    top = float(np.max(weights)) if np.size(weights) else 0.0
+    rows, cols = np.array(UPPER).T
+    hess = np.asarray(out["hess"], np.float64) * np.exp2(col[rows] + col[cols] + DROP) * top
+    grad = np.asarray(out["grad"], np.float64) * np.exp2(col + sr + DROP) * top
+    cost = float(out["cost"]) * 2.0 ** _block_scale(out["ek"], W_COST)
+    return {"hess": hess, "grad": grad, "cost": np.float64(cost)}

@@ -1,0 +1,168 @@
+"""The fixed-point client-solve circuit (``nx-sil-nN``, normal_fixed.py): each fixed-point
+operation's circuit equals its int64 mirror bit for bit, so does the whole circuit (on
+random iterations, on saturating and far-spread scenes), its decoded normal equations are
+the float64 ones to about 13 bits, and localizing on it lands where OpenCV does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_loc_circuits import random_values
+
+from snail_common.circuit import CircuitBuilder
+from snail_common.circuit.cleartext import evaluate
+from snail_common.circuit.schedule import schedule_circuit
+from snail_common.loc.accuracy import compare_with_opencv
+from snail_common.loc.backends import MirrorBackend, sil_values
+from snail_common.loc.geometry import pose_from_rvec_tvec
+from snail_common.loc.pipeline import Options, _symmetric, localize
+from snail_common.loc.preprocess import normalize
+from snail_common.loc.synthetic import random_scene
+from snail_common.pnp.do import normal_equations64
+from snail_common.pnp.fixed import FixCircuit, FixMirror
+from snail_common.pnp.fops import CircuitBackend, F
+from snail_common.pnp.fops import MirrorBackend as FloatMirror
+from snail_common.pnp.normal_fixed import EMAX_A, F_W, W_A, decode, weights_fixed
+from snail_common.pnp.spec import Spec, build, run_mirror
+
+N = 7
+SPEC = Spec("lm", "sil", "client", N, arith="fixed")
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    circuit = build(SPEC)
+    return circuit, schedule_circuit(circuit)
+
+
+def test_ids_and_defaults():
+    assert SPEC.circuit_id == "nx-sil-n7" and Spec.parse("nx-sil-n7") == SPEC
+    assert Spec.parse("ne-sil-n7").arith == "float"
+    assert Options().spec(6).circuit_id == "nx-sil-n6"
+    assert Options(arith="float").spec(6).circuit_id == "ne-sil-n6"
+    assert Options(solve="circuit").spec(6).circuit_id == "lm-sil-ldlt-n6"
+    with pytest.raises(ValueError, match="--arith fixed"):
+        Options(solve="circuit", arith="fixed")
+    with pytest.raises(ValueError, match="arith 'fixed'"):
+        Spec("lm", "sil", "ldlt", 6, arith="fixed")
+
+
+def _floats(rng: np.random.Generator, n: int) -> np.ndarray:
+    """float32 values of every kind a conversion meets: zeros of both signs, subnormals,
+    tiny, ordinary, beyond the saturation point, infinities."""
+    mags = 2.0 ** rng.uniform(-30, 6, n)
+    mags[:6] = [0.0, 1e-40, 2.0 ** -126, 1.999, 2.0, np.inf]
+    return (mags * rng.choice([-1.0, 1.0], n)).astype(np.float32)
+
+
+def test_conversions_products_and_sums_match_the_mirror():
+    rng = np.random.default_rng(3)
+    x, y = _floats(rng, 40), _floats(rng, 40)
+    x[-1] = -0.0
+    b = CircuitBuilder()
+    fc = FixCircuit(b)
+    wx, wy = (F(CircuitBackend(b), b.input(name, (40,), bits=32, dtype="float32"))
+              for name in "xy")
+    fm = FixMirror()
+    mx, my = F(FloatMirror(), x), F(FloatMirror(), y)
+    results = []
+    for fx, u, v in ((fc, wx, wy), (fm, mx, my)):
+        pub = fx.from_float(u, EMAX_A, W_A)
+        emax = fx.block_emax(v[6:])  # no infinity in this block
+        blk = fx.from_float(v[6:], emax, 15)
+        prod = fx.mul(pub[6:], blk, 13, 16)
+        total = fx.sum_tc(fx.twos(prod))
+        results.append((pub, emax, blk, prod, total))
+    for name, wires, bits in (("pub_m", results[0][0].m, W_A), ("pub_s", results[0][0].s, 1),
+                              ("emax", results[0][1], 8), ("blk_m", results[0][2].m, 15),
+                              ("prod_m", results[0][3].m, 16), ("prod_s", results[0][3].s, 1),
+                              ("total", results[0][4].v, results[0][4].w)):
+        b.output(name, wires if bits > 1 else np.asarray(wires)[..., None],
+                 dtype="int64" if name == "total" else None)
+    out = evaluate(b.build(), {"x": x, "y": y})
+    pub, emax, blk, prod, total = results[1]
+    assert np.array_equal(out["pub_m"], pub.m) and np.array_equal(out["pub_s"], pub.s)
+    assert pub.m[4] == pub.m[5] == (1 << W_A) - 1  # |a| >= 2 saturates
+    assert pub.m[0] == pub.m[1] == 0  # zeros and subnormals are 0
+    assert int(out["emax"]) == int(emax)
+    assert np.array_equal(out["blk_m"], blk.m)
+    assert np.array_equal(out["prod_m"], prod.m) and np.array_equal(out["prod_s"], prod.s)
+    assert int(out["total"]) == int(total.v)
+
+
+def test_the_mirror_is_the_arithmetic_it_claims():
+    """Magnitudes are the truncated values at the scale the module doc states."""
+    fm = FixMirror()
+    v = np.array([1.5, -0.375, 1e-3, 3.0], np.float32)
+    pub = fm.from_float(F(FloatMirror(), v), EMAX_A, W_A)
+    scale = 2.0 ** (EMAX_A - W_A - 126)
+    np.testing.assert_array_equal(pub.m[:3], np.floor(np.abs(v[:3]) / scale))
+    assert pub.s.tolist() == [0, 1, 0, 0]
+    emax = fm.block_emax(F(FloatMirror(), v))
+    assert emax == 128  # 3.0 = 1.5 * 2^1
+    blk = fm.from_float(F(FloatMirror(), v), emax, 15)
+    np.testing.assert_array_equal(blk.m, np.floor(np.abs(v) / 2.0 ** (128 - 15 - 126)))
+
+
+def test_cleartext_equals_mirror_on_random_iterations(compiled):
+    circuit, schedule = compiled
+    assert [g.name for g in circuit.inputs][-1] == "wfix"
+    rng = np.random.default_rng(11)
+    for i in range(6):
+        values = random_values(SPEC, rng)
+        values.pop("lam")
+        if i == 1:
+            values["image"][0] *= 40  # a residual far larger than the rest
+        if i == 2:
+            values["world"][1] = values["world"][1] * 0.05 + [2.0, 0.0, 0.0]  # |a| > 2
+        values["wfix"] = weights_fixed(values["weights"])
+        out = evaluate(circuit, values, schedule=schedule)
+        mirror = run_mirror(SPEC, values)
+        for name, got in out.items():
+            assert np.array_equal(np.asarray(got), np.asarray(mirror[name])), (i, name)
+
+
+def _system64(values):
+    v = {k: np.asarray(x, np.float64) for k, x in values.items()}
+    return normal_equations64(v["R"], v["t"], v["image"], v["world"], v["weights"])
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_decoded_normal_equations_are_the_float64_ones(planar):
+    rng = np.random.default_rng(21)
+    for _ in range(5):
+        problem = random_scene(rng, 12, planar=planar)
+        options = Options(min_invocations=0)
+        nrm, frame = normalize(problem)
+        pose = frame.to_normalized(pose_from_rvec_tvec(problem.initial_pose.rvec,
+                                                       problem.initial_pose.tvec))
+        spec = options.spec(12)
+        values = sil_values(spec, nrm, pose, 0.0)
+        got = MirrorBackend().run(spec, values)
+        hess, grad, cost = _system64(values)
+        assert np.linalg.norm(_symmetric(got["hess"]) - hess) <= 2.0 ** -10 * np.linalg.norm(hess)
+        assert np.linalg.norm(got["grad"] - grad) <= 2.0 ** -10 * np.linalg.norm(grad)
+        assert abs(float(got["cost"]) - cost) <= 1e-5 * cost  # float32 residuals (driver.py)
+
+
+def test_weights_fixed_normalizes_to_the_largest():
+    w = np.array([[4.0e5, 2.0e5], [0.0, 1.0e5]])
+    assert weights_fixed(w).tolist() == [[1 << F_W, 1 << (F_W - 1)], [0, 1 << (F_W - 2)]]
+    assert weights_fixed(np.zeros((2, 2))).tolist() == [[0, 0], [0, 0]]
+    out = {"hess": np.zeros(21, np.int64), "grad": np.zeros(6, np.int64),
+           "cost": np.int64(1 << 23), "ek": np.uint8(127), "ec": np.uint8(127),
+           "er": np.uint8(127)}
+    assert float(decode(w, out)["cost"]) == 2.0 ** (23 + 127 - 24 - 126)
+
+
+@pytest.mark.parametrize("algorithm", ["lm", "gn"])
+def test_localizing_on_it_lands_where_opencv_does(algorithm):
+    rng = np.random.default_rng(5)
+    for k in range(20):
+        problem = random_scene(rng, int(rng.integers(4, 40)), planar=k % 3 == 0,
+                               rotation_deg=(2.0, 10.0), translation_frac=0.15)
+        result = localize(problem, Options(algorithm, min_invocations=0), MirrorBackend())
+        assert result.spec.arith == "fixed"
+        check = compare_with_opencv(problem, result.rvec, result.tvec)
+        assert check["ok"], (k, check)
+        assert result.converged, k
