@@ -23,6 +23,6 @@ def circuit_report(spec: Spec) -> dict:
     return {"circuit": {
         "algorithm": spec.algorithm, "mode": spec.mode, "points": spec.points,
         "solve": "client" if spec.solver == CLIENT else "circuit",
-        "solver": spec.solver, "and": counts["and"], "xor": counts["xor"],
+        "solver": spec.solver, "arith": spec.arith, "and": counts["and"], "xor": counts["xor"],
         "not": counts["not"], "depth": circuit.depth(), "steps": len(schedule.steps()),
         "build_s": round(built - start, 3), "schedule_s": round(scheduled - built, 3)}}

@@ -10,7 +10,7 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   point, each block sharing its largest exponent, which the circuit returns (``ec``,
   ``er``) so the client can scale the sums back;
 - the client passes its weights twice: as float32 for the cost, and normalized to a
-  largest weight of 1 as 16-bit integers (``wfix``) for the sums.
+  largest weight of 1 as 10-bit integers (``wfix``) for the sums.
 
 Outputs are integers: ``hess`` (21, packed as normal.UPPER) at scale
 2^(s_i + s_k + DROP), ``grad`` (6) at 2^(s_i + sr + DROP), where s is the column scale
@@ -31,8 +31,8 @@ W_A = 14  # their magnitude bits: |a| < 2
 EMAX_A = W_A + 126 - F_A  # the float exponent at the top of that scale
 W_C = 15  # inverse depths, relative to the largest one
 W_R = 15  # residuals, relative to the largest one
-F_W = 15  # weights: the largest is 2^15
-W_W = 16
+F_W = 9  # weights: the largest is 2^9 (they scale the sums, not the cost: 1000 random
+W_W = 10  # scenes converged as with 15 bits)
 W_COST = 24  # per-point costs, relative to the largest one: every float32 bit of it
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 
