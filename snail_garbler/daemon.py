@@ -100,8 +100,8 @@ class GarblerDaemon(Daemon):
         self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout)
 
     async def serve(self, conn: Connection) -> None:
-        """A client's requests; its sessions end with its connection, once that is
-        closed."""
+        """A client's requests. Its sessions end with the connection, once ``serving``
+        has closed it: the client hears why, not each session's cancellation."""
         tasks: dict[bytes, asyncio.Task] = {}
         try:
             async with self.serving(conn):

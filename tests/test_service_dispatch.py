@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from snail_common.net import messages
-from snail_common.net.errors import UNEXPECTED, ConnectionClosed
+from snail_common.net.errors import ABORTED, UNEXPECTED, ConnectionClosed
 from snail_common.net.service import Options
 from snail_evaluator.daemon import EvaluatorDaemon
 from snail_garbler.daemon import GarblerDaemon
@@ -38,8 +38,10 @@ class Link:
         self.incoming = list(incoming)
         self.sent: list[dict] = []
         self.last: dict | None = None  # the frame the daemon closed the connection with
+        self.posted: list[dict | None] = []  # notices and the closing frame, in order
 
     async def recv(self, timeout: float | None = None) -> tuple[dict, int]:
+        await asyncio.sleep(0)  # what the daemon started meanwhile runs, as on a network
         if not self.incoming:
             raise ConnectionClosed(HANG_UP)
         return self.incoming.pop(0), 16
@@ -48,8 +50,12 @@ class Link:
         self.sent.append(msg)
         return 16
 
+    def post(self, msg: dict) -> None:
+        self.posted.append(msg)
+
     async def close(self, last: dict | None = None, timeout: float = 2.0) -> None:
         self.last = last
+        self.posted.append(last)
 
 
 class Lines(logging.Handler):
@@ -74,7 +80,8 @@ def lines():
     logger.removeHandler(handler)
 
 
-def serve(role: str, link: Link) -> None:
+def serve(role: str, link: Link, stuck: bool = False) -> None:
+    """Serve ``link`` on a fresh ``role`` daemon (``stuck``: its circuits never load)."""
     logger = logging.getLogger("snail.test_dispatch")
     daemon = {
         "garbler": lambda: GarblerDaemon(Options(workers=1), logger, ("127.0.0.1", 1), None),
@@ -82,6 +89,11 @@ def serve(role: str, link: Link) -> None:
         "mapowner": lambda: MapOwnerDaemon(Options(workers=1), logger, None,
                                            np.zeros((1, 1), np.uint8), None),
     }[role]()
+    if stuck:
+        async def never(*_args):
+            await asyncio.Event().wait()
+
+        daemon.circuit = never
     try:
         asyncio.run(daemon.serve(link))
     finally:
@@ -118,3 +130,17 @@ def test_a_peer_that_leaves_is_logged_not_answered(daemon, peer, lines):
     gone = "client_gone" if daemon == "garbler" else "peer_gone"
     assert [(e, lv, f["peer"], f["reason"]) for e, lv, f in lines] == [
         (gone, logging.INFO, link.peer_name, HANG_UP)]
+
+
+def test_the_garbler_closes_a_broken_link_before_it_ends_the_links_sessions(lines):
+    """The client hears why its connection was closed, not that it left: the garbler's
+    sessions are cancelled once the error has gone out (so their notices go nowhere)."""
+    sid = bytes(range(16))
+    request = {"t": "garble_request", "sid": sid, "circuit": "ops/fadd-x1", "hash": "0" * 64}
+    link = Link("client", request, {"t": "tables"})
+    serve("garbler", link, stuck=True)
+    refusal = "a client may not send tables to the garbler"
+    assert link.posted == [messages.error(UNEXPECTED, refusal),
+                           messages.error(ABORTED, "the client disconnected", sid)]
+    assert [(e, f.get("outcome")) for e, _, f in lines] == [("protocol_error", None),
+                                                           ("session", ABORTED)]

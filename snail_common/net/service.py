@@ -101,6 +101,7 @@ class Daemon:
 
     role = ""
     allowed: tuple[str, ...] = ()  # certificate roles that may connect
+    gone_event = "peer_gone"  # the log line of a peer lost mid-connection
 
     def __init__(self, options: Options, logger: logging.Logger) -> None:
         self.options = options
@@ -117,8 +118,6 @@ class Daemon:
         self.heap = HeapTrimmer()
         self.stopping = asyncio.Event()
         self.interrupted = False
-
-    gone_event = "peer_gone"  # the log line of a peer lost mid-connection
 
     # ---- subclass interface ------------------------------------------------------------
     async def shutdown_extra(self) -> None:
