@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import click
@@ -230,27 +231,40 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
                  for n in points or SERVICE_POINTS]
     except ValueError as e:
         raise click.UsageError(str(e)) from None
+    if lane_window_ms is not None and garbler:
+        raise click.UsageError("--lane-window-ms sets the embedded daemons; start "
+                               "remote ones with it instead")
+    flags = click.get_current_context().find_object(dict) or {}
+
+    def done(name: str, row: dict) -> None:
+        if flags.get("verbose"):
+            click.echo(f"snail-bench: {name}: median {row['median_s']:.3f} s, first "
+                       f"{row['first_s']:.3f} s", err=True)
+
+    _print_service(lambda: service_report(specs, repeat, garbler, evaluator, tls_dir, clients,
+                                          lane_window_ms, flags.get("quiet", False), done,
+                                          scheme),
+                   as_json, _show_service)
+
+
+def _print_service(measure: Callable[[], dict], as_json: bool,
+                   show: Callable[[dict], None]) -> None:
+    """The end of ``service``, with or without --map-points: ``measure``'s report as one
+    JSON object or as ``show`` prints it; exit 1 if the service fails."""
     from snail_client.secure import ServiceError
 
     try:
-        if lane_window_ms is not None and garbler:
-            raise click.UsageError("--lane-window-ms sets the embedded daemons; start "
-                                   "remote ones with it instead")
-        flags = click.get_current_context().find_object(dict) or {}
-
-        def done(name: str, row: dict) -> None:
-            if flags.get("verbose"):
-                click.echo(f"snail-bench: {name}: median {row['median_s']:.3f} s, first "
-                           f"{row['first_s']:.3f} s", err=True)
-
-        report = service_report(specs, repeat, garbler, evaluator, tls_dir, clients,
-                                lane_window_ms, flags.get("quiet", False), done, scheme)
+        report = measure()
     except ServiceError as e:
         click.echo(f"snail-bench: {e}", err=True)
         sys.exit(1)
     if as_json:
         click.echo(json.dumps(report))
-        return
+    else:
+        show(report)
+
+
+def _show_service(report: dict) -> None:
     for name, row in report["service"].items():
         mb = row["traffic"]["garbler_to_evaluator"] / 1e6
         rss = "  ".join(f"{role} {v} MB" for role, v in row.get("peak_rss_mb", {}).items())
@@ -269,8 +283,6 @@ def _map_owner_service(points: tuple[int, ...], map_points: tuple[int, ...], rep
                        garbler: str | None, clients: int, lane_window_ms: float | None,
                        scheme: str, as_json: bool) -> None:
     """``service --map-points``: the plain and map-owner circuits side by side."""
-    from snail_client.secure import ServiceError
-
     from .mapowner import map_owner_report
 
     if garbler or clients > 1 or algorithm != "lm" or mode != "sil" or solve == "client" \
@@ -281,14 +293,11 @@ def _map_owner_service(points: tuple[int, ...], map_points: tuple[int, ...], rep
     if any(m < n for m in map_points for n in points):
         raise click.UsageError("--map-points: every map must hold the scene's --points")
     lanes = () if lane_window_ms is None else ("--lane-window-ms", str(lane_window_ms))
-    try:
-        report = map_owner_report(points, map_points, repeat, scheme, lanes)
-    except ServiceError as e:
-        click.echo(f"snail-bench: {e}", err=True)
-        sys.exit(1)
-    if as_json:
-        click.echo(json.dumps(report))
-        return
+    _print_service(lambda: map_owner_report(points, map_points, repeat, scheme, lanes),
+                   as_json, _show_map_owner)
+
+
+def _show_map_owner(report: dict) -> None:
     for name, by_m in report["map_owner"].items():
         for m, row in by_m.items():
             pad, sel = row["pad_ot"], row["selection"]

@@ -51,7 +51,6 @@ from snail_common.net.errors import (
     ConnectionClosed,
     ProtocolError,
 )
-from snail_common.net.logs import event
 from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
 from snail_common.pnp.spec import owner_bits
@@ -106,24 +105,6 @@ class EvaluatorDaemon(Daemon):
         self.sessions: dict[bytes, Session] = {}
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
         self.owner_early = EarlyOwnerLabels()
-
-    async def serve(self, conn: Connection) -> None:
-        try:
-            if conn.peer_role == "garbler":
-                await self._serve_garbler(conn)
-            elif conn.peer_role == "mapowner":
-                await self._serve_mapowner(conn)
-            else:
-                await self._serve_client(conn)
-        except ProtocolError as exc:
-            event(self.log, "protocol_error", logging.WARNING, peer=conn.peer_name,
-                  address=str(conn.peer),
-                  peer_role=conn.peer_role, code=exc.code, reason=exc.message)
-            await conn.close(messages.error(exc.code, exc.message))
-        except ConnectionClosed as exc:
-            event(self.log, "peer_gone", peer=conn.peer_name, address=str(conn.peer),
-                  peer_role=conn.peer_role,
-                  reason=str(exc))
 
     @property
     def ahead_buffered(self) -> int:
@@ -225,13 +206,9 @@ class EvaluatorDaemon(Daemon):
                     s = self.sessions.get(msg["sid"])
                     if s is not None and s.client is conn:
                         self._fail(s, ProtocolError(ABORTED, "cancelled by the client"))
-                elif kind == "health_request":
-                    await conn.send(self.health())
-                elif kind == "bye":
+                elif await self.ends_link(conn, kind, "a client may not send {} to the "
+                                                      "evaluator"):
                     return
-                else:
-                    raise ProtocolError(UNEXPECTED, f"a client may not send {kind} to the "
-                                                    "evaluator")
         finally:
             for task in loading:
                 task.cancel()
@@ -332,13 +309,9 @@ class EvaluatorDaemon(Daemon):
                     self._add_labels(s, msg, size, owner=True)
                 else:
                     self.owner_early.add(msg, size)
-            elif kind == "health_request":
-                await conn.send(self.health())
-            elif kind == "bye":
+            elif await self.ends_link(conn, kind, "the map owner may not send {} to the "
+                                                  "evaluator"):
                 return
-            else:
-                raise ProtocolError(UNEXPECTED, f"the map owner may not send {kind} to the "
-                                                "evaluator")
 
     def finish(self, peer: str, record: dict) -> None:
         """A session ended: map-owner labels still waiting for it go too."""
@@ -353,12 +326,8 @@ class EvaluatorDaemon(Daemon):
             kind = msg["t"]
             if kind == "session_start":
                 await self._garbler_session(conn, msg, size)
-            elif kind == "health_request":
-                await conn.send(self.health())
-            elif kind == "bye":
+            elif await self.ends_link(conn, kind, "the garbler sent {} outside a session"):
                 return
-            else:
-                raise ProtocolError(UNEXPECTED, f"the garbler sent {kind} outside a session")
 
     async def _garbler_session(self, conn: Connection, msg: dict[str, Any],
                                size: int) -> None:

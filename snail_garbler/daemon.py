@@ -88,6 +88,7 @@ def frame_plan(schedule: Schedule, scheme: int = SCHEME_HALF_GATES) -> tuple[int
 class GarblerDaemon(Daemon):
     role = "garbler"
     allowed = ("client",)
+    gone_event = "client_gone"
 
     def __init__(self, options: Options, logger: logging.Logger,
                  evaluator: tuple[str, int], client_ctx) -> None:
@@ -99,32 +100,23 @@ class GarblerDaemon(Daemon):
         self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout)
 
     async def serve(self, conn: Connection) -> None:
+        """A client's requests. Its sessions end with the connection, once ``serving``
+        has closed it: the client hears why, not each session's cancellation."""
         tasks: dict[bytes, asyncio.Task] = {}
         try:
-            while True:
-                msg, size = await self.next_message(conn, lambda: bool(tasks))
-                kind = msg["t"]
-                if kind == "garble_request":
-                    self._start(conn, msg, size, tasks)
-                elif kind == "error" and "sid" in msg:
-                    task = tasks.get(msg["sid"])
-                    if task is not None:
-                        task.cancel(CANCELLED_BY_CLIENT)
-                elif kind == "health_request":
-                    await conn.send(self.health())
-                elif kind == "bye":
-                    return
-                else:
-                    raise ProtocolError(UNEXPECTED, f"a client may not send {kind} to the "
-                                                    "garbler")
-        except ProtocolError as exc:
-            event(self.log, "protocol_error", logging.WARNING, peer=conn.peer_name,
-                  address=str(conn.peer),
-                  code=exc.code, reason=exc.message)
-            await conn.close(messages.error(exc.code, exc.message))
-        except ConnectionClosed as exc:
-            event(self.log, "client_gone", peer=conn.peer_name, address=str(conn.peer),
-                  reason=str(exc))
+            async with self.serving(conn):
+                while True:
+                    msg, size = await self.next_message(conn, lambda: bool(tasks))
+                    kind = msg["t"]
+                    if kind == "garble_request":
+                        self._start(conn, msg, size, tasks)
+                    elif kind == "error" and "sid" in msg:
+                        task = tasks.get(msg["sid"])
+                        if task is not None:
+                            task.cancel(CANCELLED_BY_CLIENT)
+                    elif await self.ends_link(conn, kind, "a client may not send {} to "
+                                                          "the garbler"):
+                        return
         finally:
             for task in tasks.values():
                 task.cancel(CLIENT_LEFT)

@@ -68,23 +68,8 @@ class MapOwnerDaemon(Daemon):
         self.evaluators: dict[tuple[str, int], Connection] = {}
         self._dialing: dict[tuple[str, int], asyncio.Lock] = {}
 
-    async def serve(self, conn: Connection) -> None:
-        try:
-            if conn.peer_role == "garbler":
-                await self._serve_garbler(conn)
-            else:
-                await self._serve_device(conn)
-        except ProtocolError as exc:
-            event(self.log, "protocol_error", logging.WARNING, peer=conn.peer_name,
-                  address=str(conn.peer), peer_role=conn.peer_role, code=exc.code,
-                  reason=exc.message)
-            await conn.close(messages.error(exc.code, exc.message))
-        except (ConnectionClosed, RemoteError, TimeoutError) as exc:
-            event(self.log, "peer_gone", peer=conn.peer_name, address=str(conn.peer),
-                  peer_role=conn.peer_role, reason=str(exc))
-
-    # ---- devices: published map and oblivious selection ---------------------------------
-    async def _serve_device(self, conn: Connection) -> None:
+    # ---- devices (role client): published map and oblivious selection ------------------
+    async def _serve_client(self, conn: Connection) -> None:
         ot: ExtSender | None = None
         while True:
             msg, size = await self.next_message(conn, lambda: False)
@@ -103,13 +88,9 @@ class MapOwnerDaemon(Daemon):
                 if ot is None:
                     raise ProtocolError(UNEXPECTED, "a selection before the base OTs")
                 await self._select(conn, ot, msg, size)
-            elif kind == "health_request":
-                await conn.send(self.health())
-            elif kind == "bye":
+            elif await self.ends_link(conn, kind, "a client may not send {} to the map "
+                                                  "owner"):
                 return
-            else:
-                raise ProtocolError(UNEXPECTED, f"a client may not send {kind} to the "
-                                                "map owner")
 
     def _send_map_info(self, conn: Connection) -> None:
         ids = self.published.ids_bytes()
@@ -158,13 +139,9 @@ class MapOwnerDaemon(Daemon):
             kind = msg["t"]
             if kind == "map_invocation":
                 await self._invocation(conn, ot, msg, size)
-            elif kind == "health_request":
-                await conn.send(self.health())
-            elif kind == "bye":
+            elif await self.ends_link(conn, kind, "the garbler may not send {} to the map "
+                                                  "owner"):
                 return
-            else:
-                raise ProtocolError(UNEXPECTED, f"the garbler may not send {kind} to the "
-                                                "map owner")
 
     def _pad_bits(self, msg: dict[str, Any]) -> tuple[np.ndarray, tuple[str, int]]:
         """The choice bits of an invocation (its frame's pads) and the evaluator's

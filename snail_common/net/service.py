@@ -24,7 +24,7 @@ import ssl
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +44,7 @@ from .errors import (
     REVOKED,
     TIMEOUT,
     TOO_LARGE,
+    UNEXPECTED,
     UNKNOWN_CIRCUIT,
     ConnectionClosed,
     ProtocolError,
@@ -94,10 +95,13 @@ class Options:
 
 
 class Daemon:
-    """Base of the garbler and evaluator daemons; subclasses implement ``serve``."""
+    """Base of the daemons; a subclass serves each certificate role of ``allowed`` in a
+    method ``_serve_<role>(conn)`` that returns once the connection is done (or
+    overrides ``serve``)."""
 
     role = ""
     allowed: tuple[str, ...] = ()  # certificate roles that may connect
+    gone_event = "peer_gone"  # the log line of a peer lost mid-connection
 
     def __init__(self, options: Options, logger: logging.Logger) -> None:
         self.options = options
@@ -116,10 +120,6 @@ class Daemon:
         self.interrupted = False
 
     # ---- subclass interface ------------------------------------------------------------
-    async def serve(self, conn: Connection) -> None:
-        """Handle one accepted connection until it ends."""
-        raise NotImplementedError
-
     async def shutdown_extra(self) -> None:
         """Close what the subclass owns (e.g. pooled outgoing connections)."""
 
@@ -180,6 +180,17 @@ class Daemon:
                 if not busy():
                     raise ProtocolError(TIMEOUT, f"idle for {self.options.idle_timeout:g} "
                                                  f"s: closing the connection") from None
+
+    async def ends_link(self, conn: Connection, kind: str, refusal: str) -> bool:
+        """The end of every serving loop: a ``health_request`` is answered, a ``bye``
+        ends the connection (True); any other kind the loop does not take is refused
+        (ProtocolError, UNEXPECTED: ``refusal`` with the kind for its ``{}``)."""
+        if kind == "health_request":
+            await conn.send(self.health())
+            return False
+        if kind == "bye":
+            return True
+        raise ProtocolError(UNEXPECTED, refusal.format(kind))
 
     def admit(self, peer: str = "") -> None:
         """Count a new session (of client ``peer``, if known), or refuse it as busy when
@@ -251,6 +262,26 @@ class Daemon:
             return ProtocolError(BUSY, f"{identity.name} holds its maximum of {quota} "
                                        f"connections (--max-connections-per-peer)")
         return None
+
+    async def serve(self, conn: Connection) -> None:
+        """Serve ``conn`` with ``_serve_<its peer's role>`` until it ends."""
+        async with self.serving(conn):
+            await getattr(self, f"_serve_{conn.peer_role}")(conn)
+
+    @contextlib.asynccontextmanager
+    async def serving(self, conn: Connection) -> AsyncIterator[None]:
+        """How a served connection ends: a protocol error is logged and closes it with
+        that error for the peer; a peer that left is logged."""
+        where = {"peer": conn.peer_name, "address": str(conn.peer),
+                 "peer_role": conn.peer_role}
+        try:
+            yield
+        except ProtocolError as exc:
+            event(self.log, "protocol_error", logging.WARNING, **where, code=exc.code,
+                  reason=exc.message)
+            await conn.close(messages.error(exc.code, exc.message))
+        except (ConnectionClosed, RemoteError, TimeoutError) as exc:
+            event(self.log, self.gone_event, **where, reason=str(exc))
 
     async def _on_connect(self, conn: Connection) -> None:
         address = str(conn.peer)
