@@ -3,9 +3,10 @@
 Issue 18 asks for the extra cost of keeping the map with its owner, beside the first
 setting's: for each scene size n the plain in-circuit-solve circuit (``lm-sil-ldlt-nN``,
 the first setting's comparable family) is measured as ``service`` measures it, then for
-each map size M a ``snail-mapd`` is started on loopback holding a random M-point map that
-contains the n points of a random scene, and ``repeat`` frames localize against it over
-TLS (four processes, as a device would). Reported per (n, M):
+each map size M a ``snail-mapd`` on loopback holding a random M-point map that contains the
+n points of a random scene (all started with the embedded servers, whose garbler may dial
+only them) serves ``repeat`` frames that localize against it over TLS (four processes, as
+a device would). Reported per (n, M):
 
 - seconds per iteration (median over every timed iteration of every frame) next to the
   plain circuit's, from the same run and daemons: its ``service`` median
@@ -32,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snail_client.embedded import Daemon, connected, start_daemon
+from snail_client.embedded import Daemon, connected
 from snail_client.localize import GarbledBackend, Options
 from snail_client.mapowner import MapOwnerLink
 from snail_client.owner_localize import run_frame
@@ -93,24 +94,19 @@ def _median(values: list[float], digits: int = 4) -> float | None:
     return round(statistics.median(values), digits) if values else None
 
 
-def map_owner_row(runner, tls_dir: Path, n: int, m: int, repeat: int, plain: dict,
-                  options: Options, rng: np.random.Generator) -> dict:
-    """One (n, M) measurement; see the module docstring for the fields."""
-    frame, points = scene_and_map(rng, n, m)
-    with tempfile.TemporaryDirectory(prefix="snail-bench-mapd-") as tmp:
-        log = Path(tmp) / "mapd.log"
-        daemon: Daemon = start_daemon("mapd", ["--map", str(write_map(points, Path(tmp) /
-                                                                        "map.json")),
-                                               "--tls-dir", str(tls_dir),
-                                               "--log-level", "info"], log)
-        try:
-            with MapOwnerLink(daemon.address, tls_dir) as link:
-                link.open()  # map_info and base OTs: once per link, not per frame
-                records = [run_frame(frame, link, GarbledBackend(runner), options)
-                           for _ in range(repeat)]
-        finally:
-            daemon.stop()
-        selections, pad_ots = map_owner_sessions(log)
+def map_owner_row(runner, tls_dir: Path, daemon: Daemon, frame: Frame, points: MapPoints,
+                  repeat: int, plain: dict, options: Options) -> dict:
+    """One (n, M) measurement against ``daemon``, the map owner holding ``points``; see
+    the module docstring for the fields."""
+    n, m = len(frame.map_ids), len(points.ids)
+    try:
+        with MapOwnerLink(daemon.address, tls_dir) as link:
+            link.open()  # map_info and base OTs: once per link, not per frame
+            records = [run_frame(frame, link, GarbledBackend(runner), options)
+                       for _ in range(repeat)]
+    finally:
+        daemon.stop()  # its log is complete once it has gone
+    selections, pad_ots = map_owner_sessions(daemon.log)
     published, values = owner_values(points)
     want = localize_known(frame, published, values, options, CircuitBackend())
     # the first setting on the same frames and driver: the client holds the points
@@ -179,20 +175,29 @@ def map_owner_row(runner, tls_dir: Path, n: int, m: int, repeat: int, plain: dic
 def map_owner_report(points: tuple[int, ...], map_points: tuple[int, ...], repeat: int,
                      scheme: str = DEFAULT_SCHEME, lanes: tuple[str, ...] = ()) -> dict:
     """``{"service": {plain id: row}, "map_owner": {mo id: {str(M): row}}}`` on embedded
-    daemons (the map owner needs certificates from the same throwaway CA)."""
+    daemons (the map owners need certificates from the same throwaway CA, and the garbler
+    their addresses at its start: every map is made before the servers start)."""
     options = Options(solve="circuit", min_invocations=FRAME_INVOCATIONS, scheme=scheme)
     rng = np.random.default_rng(secrets.randbits(128))
+    scenes = {(n, m): scene_and_map(rng, n, m) for n in points for m in map_points}
     service: dict[str, dict] = {}
     owner: dict[str, dict] = {}
-    with connected(None, None, None, lanes, scheme=scheme) as (runner, services):
-        for n in points:
-            spec = Spec("lm", "sil", options.solver, n)
-            row = {**_measure(runner, spec, repeat), "scheme": scheme}
-            service[spec.circuit_id] = row
-            plain = {"circuit": spec.circuit_id, "and": row["and"],
-                     "median_s": row["median_s"]}
-            mo_id = Spec("lm", "sil", options.solver, n, owner=True).circuit_id
-            owner[mo_id] = {str(m): {**map_owner_row(runner, services.tls_dir, n, m, repeat,
-                                                     plain, options, rng), "scheme": scheme}
-                            for m in map_points}
+    with tempfile.TemporaryDirectory(prefix="snail-bench-maps-") as tmp:
+        maps = [write_map(xyz, Path(tmp) / f"map-n{n}-m{m}.json")
+                for (n, m), (_, xyz) in scenes.items()]
+        with connected(None, None, None, lanes, scheme=scheme, maps=maps) as (
+                runner, services):
+            owners = dict(zip(scenes, services.map_owners))
+            for n in points:
+                spec = Spec("lm", "sil", options.solver, n)
+                row = {**_measure(runner, spec, repeat), "scheme": scheme}
+                service[spec.circuit_id] = row
+                plain = {"circuit": spec.circuit_id, "and": row["and"],
+                         "median_s": row["median_s"]}
+                mo_id = Spec("lm", "sil", options.solver, n, owner=True).circuit_id
+                owner[mo_id] = {str(m): {**map_owner_row(runner, services.tls_dir,
+                                                         owners[n, m], *scenes[n, m],
+                                                         repeat, plain, options),
+                                         "scheme": scheme}
+                                for m in map_points}
     return {"service": service, "map_owner": owner}

@@ -3,6 +3,8 @@
 Creates throwaway certificates in a temporary directory, starts ``python -m
 snail_evaluator`` and ``python -m snail_garbler`` as subprocesses on free ports (port 0:
 each daemon reports its port in its ``listening`` log line), and stops them on exit.
+Map owners (``python -m snail_mapd``, one per map asked for) start before the garbler,
+which may dial only the map owners it is told of (``--map-owner``).
 Their JSON logs go to files in the temporary directory; a daemon that fails to start
 raises ServiceError with the tail of its log.
 """
@@ -18,7 +20,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +34,8 @@ from .secure import DEFAULT_BUSY_WAIT, SecureRunner, ServiceError
 
 STARTUP_TIMEOUT = 60.0
 STOP_TIMEOUT = 10.0
+# map owners log their sessions: the only record of the map owner's time (snail-bench)
+MAP_OWNER_LOG_LEVEL = "info"
 
 
 @dataclass
@@ -62,6 +66,7 @@ class Services:
     garbler: Daemon
     evaluator: Daemon
     tls_dir: Path
+    map_owners: tuple[Daemon, ...] = ()  # one per map, in the order given
 
     @property
     def garbler_addr(self) -> str:
@@ -121,8 +126,10 @@ def _tail(log: Path, lines: int = 5) -> str:
 
 @contextlib.contextmanager
 def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None = None,
-                      extra_args: tuple[str, ...] = ()) -> Iterator[Services]:
-    """Run both daemons on loopback with fresh certificates for the ``with`` block."""
+                      extra_args: tuple[str, ...] = (), maps: Sequence[str | Path] = (),
+                      ) -> Iterator[Services]:
+    """Run both daemons on loopback with fresh certificates for the ``with`` block, and a
+    map owner for each of ``maps`` (snail-map/1 files) that the garbler may dial."""
     with tempfile.TemporaryDirectory(prefix="snail-") as tmp:
         root = Path(tmp)
         tls_dir = make_certs(root / "tls")
@@ -131,10 +138,16 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
         try:
             evaluator = start_daemon("evaluator", common, root / "evaluator.log", env=env)
             started.append(evaluator)
-            garbler = start_daemon("garbler", ["--evaluator", evaluator.address, *common],
-                                   root / "garbler.log", env=env)
+            for i, map_path in enumerate(maps):
+                started.append(start_daemon("mapd", [
+                    "--map", str(map_path), "--tls-dir", str(tls_dir),
+                    "--log-level", MAP_OWNER_LOG_LEVEL], root / f"mapd{i}.log", env=env))
+            owners = tuple(started[1:])
+            allowed = [arg for owner in owners for arg in ("--map-owner", owner.address)]
+            garbler = start_daemon("garbler", ["--evaluator", evaluator.address, *allowed,
+                                               *common], root / "garbler.log", env=env)
             started.append(garbler)
-            yield Services(garbler, evaluator, tls_dir)
+            yield Services(garbler, evaluator, tls_dir, owners)
         finally:
             for daemon in reversed(started):
                 daemon.stop()
@@ -154,10 +167,11 @@ def connected(garbler: str | None = None, evaluator: str | None = None,
               tls_dir: str | None = None, daemon_args: tuple[str, ...] = (),
               busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
               link_timeout: float = DEFAULT_LINK_TIMEOUT, scheme: str = DEFAULT_SCHEME,
+              maps: Sequence[str | Path] = (),
               ) -> Iterator[tuple[SecureRunner, Services | None]]:
     """A runner for the servers at these addresses, or for embedded ones started for the
-    block with ``daemon_args`` (yielded too, so a caller can watch them; None for remote
-    servers)."""
+    block with ``daemon_args`` and a map owner per map of ``maps`` (yielded too, so a
+    caller can watch them; None for remote servers)."""
     check_addresses(garbler, evaluator, tls_dir)
     if garbler:
         with SecureRunner(garbler, evaluator, tls_dir, busy_wait=busy_wait,
@@ -165,7 +179,7 @@ def connected(garbler: str | None = None, evaluator: str | None = None,
                           cert_name=cert_name) as runner:
             yield runner, None
         return
-    with embedded_services(extra_args=daemon_args) as services, SecureRunner(
+    with embedded_services(extra_args=daemon_args, maps=maps) as services, SecureRunner(
             services.garbler_addr, services.evaluator_addr, services.tls_dir,
             busy_wait=busy_wait, link_timeout=link_timeout, scheme=scheme) as runner:
         yield runner, services

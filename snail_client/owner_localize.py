@@ -6,9 +6,10 @@ under the map owner's pads, mapowner.py), names the frame handle to the secure r
 runs the map-owner circuit (snail_common.loc.owner): its share of the points goes in as
 labels it derives, the map owner's pads by OT between the map owner and the garbler.
 
-``--map`` starts a map owner on loopback with that map (with the embedded servers, or
-beside remote ones with --tls-dir): for trying the setting out. It gives no privacy
-against yourself: this machine then holds the map and the device's data together.
+``--map`` starts a map owner on loopback with that map (with the embedded servers, which
+are told to allow it, or beside remote ones with --tls-dir, whose garbler must allow its
+address with --map-owner): for trying the setting out. It gives no privacy against
+yourself: this machine then holds the map and the device's data together.
 With ``--backend cleartext`` or ``float64`` (``--map`` only) the same localization runs
 in the clear on the selected points.
 """
@@ -67,9 +68,11 @@ def localize_frame(path: str, options: Options, map_owner: str | None,
                       dict.fromkeys((*LINKS, *MAP_OWNER_LINKS), 0))
     with connected(options.garbler, options.evaluator, options.tls_dir,
                    busy_wait=options.busy_wait, cert_name=options.cert_name,
-                   link_timeout=options.link_timeout, scheme=options.scheme) as (
-                       runner, services):
+                   link_timeout=options.link_timeout, scheme=options.scheme,
+                   maps=(map_path,) if map_path else ()) as (runner, services):
         tls_dir = services.tls_dir if services is not None else options.tls_dir
+        if services is not None and services.map_owners:
+            map_owner = services.map_owners[0].address
         with _map_owner(map_owner, map_path, tls_dir) as address, MapOwnerLink(
                 address, tls_dir, options.cert_name) as link:
             return run_frame(frame, link, GarbledBackend(runner), options)
@@ -91,7 +94,8 @@ def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
 @contextlib.contextmanager
 def _map_owner(address: str | None, map_path: str | None, tls_dir: str | Path,
                ) -> Iterator[str]:
-    """The map owner's address: the given one, or one started here for ``--map``."""
+    """The map owner's address: the given one, or one started here for ``--map`` beside
+    remote servers."""
     if address:
         yield address
         return

@@ -22,13 +22,28 @@ from snail_common.net.service import run_daemon
 from .daemon import GarblerDaemon
 
 
+def addresses(ctx: click.Context, param: click.Parameter,
+              values: tuple[str, ...]) -> tuple[tuple[str, int], ...]:
+    """click callback for a repeatable HOST:PORT option."""
+    return tuple(address(ctx, param, value) for value in values)
+
+
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--listen", required=True, callback=address, metavar="HOST:PORT",
               help="Address to accept clients on (port 0: any free port).")
 @click.option("--evaluator", "evaluator", required=True, callback=address,
               metavar="HOST:PORT", help="Address of the evaluator to stream tables to.")
+@click.option("--map-owner", "map_owners", multiple=True, callback=addresses,
+              metavar="HOST:PORT",
+              help="A map owner (snail-mapd) this garbler may dial for the map-owner setting "
+                   "(repeatable). Clients name the map owner in their requests; the garbler "
+                   "dials only the ones allowed here, so that no client can make it connect "
+                   "wherever it likes. Default: none, and map-owner sessions are refused. "
+                   "Clients must name it as given here: host and port are compared, names "
+                   "are not resolved ('localhost' is not '127.0.0.1').")
 @daemon_options
-def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_level: str,
+def main(listen: tuple[str, int], evaluator: tuple[str, int],
+         map_owners: tuple[tuple[str, int], ...], tls_dir: str, log_level: str,
          **kwargs) -> None:
     """Garbler daemon: garbles circuits from each client's seed and offset and streams the
     tables to the evaluator (see snail_garbler.daemon)."""
@@ -38,7 +53,7 @@ def main(listen: tuple[str, int], evaluator: tuple[str, int], tls_dir: str, log_
         server_ctx = tls.server_context(tls_dir, "garbler")
         client_ctx = tls.client_context(tls_dir, "garbler")
         daemon = GarblerDaemon(options_from({**kwargs, "tls_dir": tls_dir}), logger,
-                               evaluator, client_ctx)
+                               evaluator, client_ctx, map_owners)
     except (OSError, ValueError) as exc:
         fail(2, f"--tls-dir: {exc}", "snail-garbler")
     families.register_all()

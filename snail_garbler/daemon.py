@@ -91,13 +91,15 @@ class GarblerDaemon(Daemon):
     gone_event = "client_gone"
 
     def __init__(self, options: Options, logger: logging.Logger,
-                 evaluator: tuple[str, int], client_ctx) -> None:
+                 evaluator: tuple[str, int], client_ctx,
+                 map_owners: tuple[tuple[str, int], ...]) -> None:
         super().__init__(options, logger)
         self.evaluator = evaluator
         self.client_ctx = client_ctx  # TLS context for the link to the evaluator
         self.idle: list[Connection] = []
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
-        self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout)
+        self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout,
+                                  map_owners)
 
     async def serve(self, conn: Connection) -> None:
         """A client's requests. Its sessions end with the connection, once ``serving``

@@ -8,12 +8,19 @@ as for every input, and offers (L0, L0 ^ D) per wire; the map owner's choices ar
 bits, so it gets one label per wire and never D, and forwards them to the evaluator. The
 garbler learns nothing of the bits (IKNP hides the choices). Links are kept per map-owner
 address with their OT state: the base OTs (~0.1 s) run once per link, not per session.
+
+The client names the address, so the garbler dials only map owners its operator allowed
+(``--map-owner``): otherwise any client could make it open connections to any host and
+port (a server-side request forgery). A request naming another address is refused before
+any connection is made; with none allowed, every map-owner session is.
 """
 
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import ssl
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -37,14 +44,27 @@ from snail_common.pnp.spec import owner_bits
 MAX_IDLE = 8  # idle links kept per map owner
 
 Link = tuple[Connection, ExtSender]
+NOT_ALLOWED = "the operator must allow it (--map-owner on the garbler)"
+
+
+def address_key(addr: tuple[str, int]) -> tuple[str, int]:
+    """A parsed address as the allow-list compares it: IP literals in one spelling (``::1``
+    is ``0:0::1``), host names in lower case; names are not resolved, so ``localhost``
+    is not ``127.0.0.1``."""
+    host, port = addr
+    try:
+        return ipaddress.ip_address(host).compressed, port
+    except ValueError:
+        return host.lower(), port
 
 
 class OwnerInputs:
     """Runs the OT of the map owner's wires for a session; pools the links."""
 
     def __init__(self, ctx: ssl.SSLContext, evaluator: tuple[str, int],
-                 handshake_timeout: float) -> None:
+                 handshake_timeout: float, allowed: Iterable[tuple[str, int]]) -> None:
         self.ctx, self.evaluator = ctx, format_addr(*evaluator)
+        self.allowed = frozenset(map(address_key, allowed))
         self.handshake_timeout = handshake_timeout
         self.idle: dict[tuple[str, int], list[Link]] = {}
 
@@ -67,6 +87,7 @@ class OwnerInputs:
             addr = parse_addr(req["map_owner"])
         except ValueError as exc:
             raise ProtocolError(BAD_REQUEST, f"field 'map_owner': {exc}") from None
+        self._check_allowed(addr)
         x0 = derive_zero_labels(req["seed"], FIRST_INPUT + circuit.n_inputs)[-count:]
         x1 = x0 ^ labels_from_bytes(req["delta"])[0]
         conn, ot = await self._acquire(addr)
@@ -85,6 +106,17 @@ class OwnerInputs:
         self._release(addr, (conn, ot))
         return {"garbler_to_mapowner": conn.bytes_out - before[0],
                 "mapowner_to_garbler": conn.bytes_in - before[1]}
+
+    def _check_allowed(self, addr: tuple[str, int]) -> None:
+        """BAD_REQUEST unless the operator allowed this map owner: checked before any
+        connection, so a client cannot make the garbler dial where it likes."""
+        if not self.allowed:
+            raise ProtocolError(BAD_REQUEST, f"field 'map_owner': this garbler dials no map "
+                                             f"owner, none is allowed; {NOT_ALLOWED}")
+        if address_key(addr) not in self.allowed:
+            raise ProtocolError(BAD_REQUEST, f"field 'map_owner': {format_addr(*addr)} is "
+                                             f"not a map owner this garbler may dial; "
+                                             f"{NOT_ALLOWED}")
 
     async def _run(self, conn: Connection, ot: ExtSender, req: dict[str, Any], count: int,
                    x0: np.ndarray, x1: np.ndarray, timeout: float) -> None:

@@ -16,6 +16,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import msgpack
@@ -109,33 +110,46 @@ def write_map(points: mapfile.MapPoints, path: Path) -> Path:
 def servers(tmp_path_factory):
     root = tmp_path_factory.mktemp("servers")
     tls_dir = make_certs(root / "tls")
-    common = ["--tls-dir", str(tls_dir)]
-    evaluator = start_recorded("evaluator", root, *common)
-    garbler = start_recorded("garbler", root, "--evaluator", evaluator.address, *common)
-    yield root, tls_dir, garbler, evaluator
-    for daemon in (garbler, evaluator):
-        daemon.stop()
+    evaluator = start_recorded("evaluator", root, "--tls-dir", str(tls_dir))
+    yield root, tls_dir, evaluator
+    evaluator.stop()
+
+
+@contextlib.contextmanager
+def map_owner(servers, points: mapfile.MapPoints, tmp_path: Path
+              ) -> Iterator[tuple[Daemon, Daemon]]:
+    """A fresh snail-mapd holding ``points``, then a garbler allowed to dial it (it learns
+    the map owner's address at its start, as from its operator); both record what they
+    receive in ``tmp_path``."""
+    _, tls_dir, evaluator = servers
+    mapd = start_recorded("mapd", tmp_path, "--map", str(write_map(points, tmp_path /
+                                                                    "map.json")),
+                          "--tls-dir", str(tls_dir))
+    try:
+        garbler = start_recorded("garbler", tmp_path, "--evaluator", evaluator.address,
+                                 "--map-owner", mapd.address, "--tls-dir", str(tls_dir))
+        try:
+            yield mapd, garbler
+        finally:
+            garbler.stop()
+    finally:
+        mapd.stop()
 
 
 def run_frame(servers, m: int, tmp_path: Path, example: str = "synthetic_n6"):
     """Localize the example against a map of ``m`` points held by a fresh snail-mapd;
     returns the garbled result, the oracle's, and what the map owner holds."""
-    _, tls_dir, garbler, evaluator = servers
+    _, tls_dir, evaluator = servers
     points, frame, problem = scene(m, example)
-    mapd = start_recorded("mapd", tmp_path, "--map", str(write_map(points, tmp_path /
-                                                                    "map.json")),
-                          "--tls-dir", str(tls_dir))
-    try:
-        with MapOwnerLink(mapd.address, tls_dir) as link, SecureRunner(
+    with map_owner(servers, points, tmp_path) as (mapd, garbler), MapOwnerLink(
+            mapd.address, tls_dir) as link, SecureRunner(
                 garbler.address, evaluator.address, tls_dir) as runner:
-            published = link.open()
-            handle, masked = link.select(frame.map_ids)
-            runner.use_frame(handle, mapd.address)
-            got = owner.localize_shared(frame, published, masked, OPTIONS,
-                                        GarbledBackend(runner))
-            traffic = {**runner.totals, **link.traffic}
-    finally:
-        mapd.stop()
+        published = link.open()
+        handle, masked = link.select(frame.map_ids)
+        runner.use_frame(handle, mapd.address)
+        got = owner.localize_shared(frame, published, masked, OPTIONS,
+                                    GarbledBackend(runner))
+        traffic = {**runner.totals, **link.traffic}
     published, values = owner.owner_values(points)
     want = owner.localize_known(frame, published, values, OPTIONS, CircuitBackend())
     return got, want, (frame, problem, values, traffic)
@@ -182,12 +196,12 @@ def test_no_frame_carries_what_its_receiver_must_not_see(servers, tmp_path, monk
         return msg
 
     root = servers[0]
-    earlier = {role: len(received(root, role)) for role in ("garbler", "evaluator")}
+    earlier = len(received(root, "evaluator"))
     monkeypatch.setattr(frames, "decode", recording)
     got, _, (frame, problem, values, _) = run_frame(servers, 64, tmp_path)
     to_mapd = received(tmp_path, "mapd")
-    to_garbler = received(root, "garbler")[earlier["garbler"]:]
-    to_evaluator = received(root, "evaluator")[earlier["evaluator"]:]
+    to_garbler = received(tmp_path, "garbler")
+    to_evaluator = received(root, "evaluator")[earlier:]
     assert {m["t"] for m in to_mapd} <= {"hello", "capabilities", "map_info_request",
                                          "ot_base_a", "ot_ext_u",
                                          "map_invocation", "ot_base_b", "ot_ext_y", "bye"}
@@ -226,23 +240,18 @@ def test_no_frame_carries_what_its_receiver_must_not_see(servers, tmp_path, monk
 
 
 def test_a_frame_the_map_owner_does_not_know_is_refused_by_name(servers, tmp_path):
-    _, tls_dir, garbler, evaluator = servers
+    _, tls_dir, evaluator = servers
     points, frame, _ = scene(64)
-    mapd = start_recorded("mapd", tmp_path, "--map", str(write_map(points, tmp_path /
-                                                                    "map.json")),
-                          "--tls-dir", str(tls_dir))
-    try:
-        with MapOwnerLink(mapd.address, tls_dir) as link, SecureRunner(
+    with map_owner(servers, points, tmp_path) as (mapd, garbler), MapOwnerLink(
+            mapd.address, tls_dir) as link, SecureRunner(
                 garbler.address, evaluator.address, tls_dir) as runner:
-            published = link.open()
-            with pytest.raises(ProblemError, match=r"map_ids\[0\]"):
-                link.select(np.array([int(published.ids.max()) + 1, *frame.map_ids[1:]]))
-            runner.use_frame(bytes(16), mapd.address)  # never issued
-            with pytest.raises(ServiceError, match="map owner reported: field 'frame'"):
-                owner.localize_shared(frame, published, np.zeros((6, 3), np.uint32),
-                                      OPTIONS, GarbledBackend(runner))
-    finally:
-        mapd.stop()
+        published = link.open()
+        with pytest.raises(ProblemError, match=r"map_ids\[0\]"):
+            link.select(np.array([int(published.ids.max()) + 1, *frame.map_ids[1:]]))
+        runner.use_frame(bytes(16), mapd.address)  # never issued
+        with pytest.raises(ServiceError, match="map owner reported: field 'frame'"):
+            owner.localize_shared(frame, published, np.zeros((6, 3), np.uint32),
+                                  OPTIONS, GarbledBackend(runner))
 
 
 def frame_files(tmp_path: Path, m: int) -> tuple[Path, Path]:
@@ -298,7 +307,7 @@ def test_a_frame_naming_an_id_the_map_lacks_is_exit_2(tmp_path):
 
 
 def test_the_evaluator_takes_map_owner_wires_from_the_map_owner_only(servers):
-    _, tls_dir, _, evaluator = servers
+    _, tls_dir, evaluator = servers
     circuit = "loc/lm-sil-ldlt-n6-mo"
     register_all()
     iface = registry.interface(circuit)
@@ -326,12 +335,11 @@ def test_a_map_owner_gone_mid_frame_fails_the_run_by_name(servers, tmp_path):
     """The map owner stops after the selection: the next invocation fails at once with an
     error naming the map owner (the pooled link is found dead, a new one is refused), and
     the servers serve the next frame of a live map owner."""
-    _, tls_dir, garbler, evaluator = servers
+    _, tls_dir, evaluator = servers
     points, frame, _ = scene(64)
-    map_path = write_map(points, tmp_path / "map.json")
-    mapd = start_recorded("mapd", tmp_path, "--map", str(map_path), "--tls-dir", str(tls_dir))
     options = Options(solve="circuit", min_invocations=0)
-    with SecureRunner(garbler.address, evaluator.address, tls_dir) as runner:
+    with map_owner(servers, points, tmp_path) as (mapd, garbler), SecureRunner(
+            garbler.address, evaluator.address, tls_dir) as runner:
         with MapOwnerLink(mapd.address, tls_dir) as link:
             published = link.open()
             handle, masked = link.select(frame.map_ids)

@@ -1,0 +1,138 @@
+"""The garbler dials only the map owners its operator allowed (``--map-owner``): a client
+naming another address, or any address when none is allowed, is refused by name, and the
+garbler opens no connection to it (a client must not make the server dial where it likes).
+The allowed case is the map-owner end-to-end tests (test_mapowner_e2e.py)."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from snail_client.embedded import start_daemon
+from snail_client.secure import SecureRunner, ServiceError
+from snail_common.circuit import registry
+from snail_common.net import errors
+from snail_common.net.tls import make_certs
+from snail_garbler.owner import address_key
+
+CIRCUIT = "loc/lm-sil-ldlt-n4-mo"  # the smallest map-owner circuit
+NOT_ALLOWED = "the operator must allow it (--map-owner on the garbler)"
+
+
+class Listener:
+    """A TCP socket on loopback that nobody should dial; counts who did. The kernel
+    completes a connection to a listening socket before anyone accepts it, so a dial that
+    happened is found by a non-blocking accept afterwards."""
+
+    def __init__(self) -> None:
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.port = self.sock.getsockname()[1]
+        self.accepted: list[socket.socket] = []
+
+    def dialled(self) -> int:
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                self.accepted.append(self.sock.accept()[0])
+        return len(self.accepted)
+
+    def close(self) -> None:
+        for conn in [*self.accepted, self.sock]:
+            conn.close()
+
+
+@pytest.fixture(scope="module")
+def listener():
+    target = Listener()
+    yield target
+    target.close()
+
+
+@pytest.fixture(scope="module")
+def tls_dir(tmp_path_factory):
+    return make_certs(tmp_path_factory.mktemp("tls"))
+
+
+@pytest.fixture(scope="module")
+def evaluator(tmp_path_factory, tls_dir):
+    daemon = start_daemon("evaluator", ["--tls-dir", str(tls_dir)],
+                          tmp_path_factory.mktemp("evaluator") / "evaluator.log")
+    yield daemon
+    daemon.stop()
+
+
+@contextlib.contextmanager
+def garbler(tmp_path, tls_dir, evaluator, *flags: str):
+    daemon = start_daemon("garbler", ["--evaluator", evaluator.address, "--tls-dir",
+                                      str(tls_dir), *flags], tmp_path / "garbler.log")
+    try:
+        yield daemon
+    finally:
+        daemon.stop()
+
+
+def request_map_owner(garbler, evaluator, tls_dir, map_owner: str) -> ServiceError:
+    """One run of a map-owner circuit whose request names ``map_owner``; its failure."""
+    bits = np.zeros(registry.interface(CIRCUIT).n_inputs, bool)
+    with SecureRunner(garbler.address, evaluator.address, tls_dir, timeout=120) as runner:
+        runner.use_frame(bytes(16), map_owner)
+        with pytest.raises(ServiceError) as failed:
+            runner.run(CIRCUIT, bits)
+    return failed.value
+
+
+@pytest.mark.parametrize("allowed, words", [
+    ((), "none is allowed"),
+    # names are compared, not resolved: the client must name it as the operator did
+    (("127.0.0.2:{port}", "localhost:{port}"), "127.0.0.1:{port} is not a map owner this "
+                                               "garbler may dial"),
+], ids=["none_allowed", "another_allowed"])
+def test_a_map_owner_not_allowed_is_refused_and_never_dialled(tmp_path, tls_dir, evaluator,
+                                                              listener, allowed, words):
+    flags = [arg for addr in allowed
+             for arg in ("--map-owner", addr.format(port=listener.port))]
+    with garbler(tmp_path, tls_dir, evaluator, *flags) as daemon:
+        error = request_map_owner(daemon, evaluator, tls_dir, f"127.0.0.1:{listener.port}")
+        assert error.code == errors.BAD_REQUEST
+        assert "field 'map_owner'" in str(error) and NOT_ALLOWED in str(error)
+        assert words.format(port=listener.port) in str(error)
+        assert listener.dialled() == 0
+        # the garbler serves on: the next client is refused the same way
+        error = request_map_owner(daemon, evaluator, tls_dir, f"127.0.0.1:{listener.port}")
+        assert error.code == errors.BAD_REQUEST and listener.dialled() == 0
+
+
+def test_addresses_are_compared_after_parsing():
+    assert address_key(("::1", 7001)) == address_key(("0:0::1", 7001))
+    assert address_key(("Map.Example.ORG", 7001)) == ("map.example.org", 7001)
+    assert address_key(("127.0.0.1", 7001)) != address_key(("127.0.0.1", 7002))
+    assert address_key(("localhost", 7001)) != address_key(("127.0.0.1", 7001))
+
+
+def garbler_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "snail_garbler", *args],
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_a_bad_map_owner_address_is_exit_2_naming_the_option(tls_dir):
+    out = garbler_cli("--listen", "127.0.0.1:0", "--evaluator", "127.0.0.1:1",
+                      "--tls-dir", str(tls_dir), "--map-owner", "127.0.0.1:7003",
+                      "--map-owner", "bad")
+    assert out.returncode == 2
+    assert "--map-owner" in out.stderr and "'bad'" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_help_says_why_and_how_to_name_a_map_owner():
+    out = garbler_cli("--help")
+    assert out.returncode == 0
+    text = " ".join(out.stdout.split())
+    assert "--map-owner HOST:PORT" in text and "(repeatable)" in text
+    assert "no client can make it connect wherever it likes" in text
+    assert "map-owner sessions are refused" in text
+    assert "'localhost' is not '127.0.0.1'" in text
