@@ -29,7 +29,8 @@ GOLDEN = Path(__file__).with_name("circuit_keys.json")
 FAMILIES = {"ops": catalog.FAMILY, "loc": family.FAMILY}
 SAMPLES = {
     "ops": [f"f{op}-x1" for op in catalog.SERVED],
-    "loc": ["lm-sil-ldlt-n4", "gn-sil-ldlt-n4", "lm-do-ldlt-n4-i1", "ne-sil-n4", "nx-sil-n4"],
+    "loc": ["lm-sil-ldlt-n4", "gn-sil-ldlt-n4", "lm-do-ldlt-n4-i1", "ne-sil-n4", "nx-sil-n4",
+            "lm-sil-ldlt-n4-x"],
 }
 SCHEDULED = ["ops/fadd-x1", "ops/fdiv-x1", "loc/lm-sil-ldlt-n4"]
 # building an SVD circuit takes minutes: its solver alone stands in for it

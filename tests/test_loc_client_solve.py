@@ -32,7 +32,7 @@ def test_one_circuit_serves_lm_and_gn_and_its_id_round_trips():
         Options(mode="do", solve="client")
     assert Options(arith="float").spec(6).circuit_id == "ne-sil-n6"
     assert Options(mode="do").spec(6).circuit_id == "lm-do-ldlt-n6"
-    assert Options(solve="circuit").spec(6).circuit_id == "lm-sil-ldlt-n6"
+    assert Options(solve="circuit").spec(6).circuit_id == "lm-sil-ldlt-n6-x"
 
 
 def test_cleartext_equals_mirror_and_float64():

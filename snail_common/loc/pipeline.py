@@ -13,8 +13,8 @@ stops early. A DO frame is always one invocation, whatever the data.
 Where the 6x6 system is solved (``solve``): by default in SIL mode the circuit returns
 the normal equations and the client damps and solves them (sil.py says why that is safe
 in the offload setting); ``circuit`` solves inside, as the paper does, and is the only
-choice for DO. The client-solve circuit computes its per-point sums in fixed point by
-default (``arith``, normal_fixed.py), or in narrow floats as before.
+choice for DO. SIL circuits compute their per-point sums in fixed point by default
+(``arith``, normal_fixed.py), or in narrow floats as before.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ class Options:
     pad_points: int = 0  # round n up to a multiple of this (0: no padding)
     do_iterations: int = DO_ITERATIONS
     solve: str | None = None  # client or circuit; None: client for sil, circuit for do
-    arith: str | None = None  # the client-solve circuit's per-point work; None: fixed
+    arith: str | None = None  # per-point arithmetic, fixed or float; None: fixed for sil
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -71,9 +71,9 @@ class Options:
             raise ValueError(f"--solve: expected client or circuit, got {self.solve!r}")
         if self.arith not in (None, *ARITHS):
             raise ValueError(f"--arith: expected fixed or float, got {self.arith!r}")
-        if self.arith == "fixed" and self.solve_at != "client":
-            raise ValueError("--arith fixed: only the client-solve circuit has it "
-                             "(use --solve client with --mode sil)")
+        if self.arith == "fixed" and not self._fixed_possible:
+            raise ValueError("--arith fixed: for --mode sil with the client's solve or "
+                             "--solver ldlt")
         if self.mode == "do" and self.solve == "client":
             raise ValueError("--solve client: --mode do solves inside its circuit "
                              "(use --solve circuit)")
@@ -84,12 +84,14 @@ class Options:
         return self.solve or ("circuit" if self.mode == "do" else "client")
 
     @property
+    def _fixed_possible(self) -> bool:
+        return self.mode == "sil" and (self.solve_at == "client" or self.solver == "ldlt")
+
+    @property
     def arith_used(self) -> str:
-        """The client-solve circuit's arithmetic (fixed unless asked otherwise); the
-        in-circuit solve is float."""
-        if self.solve_at != "client":
-            return "float"
-        return self.arith or "fixed"
+        """The per-point arithmetic: fixed where the circuit has it, unless asked
+        otherwise (the DO and SVD circuits are float only)."""
+        return (self.arith or "fixed") if self._fixed_possible else "float"
 
     def circuit_points(self, n: int) -> int:
         if self.pad_points <= 1:

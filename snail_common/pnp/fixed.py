@@ -24,10 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from snail_common.arith import integer, multiply, shift
+from snail_common.arith import fconvert, integer, multiply, shift
+from snail_common.arith import mirror as m
 from snail_common.arith.words import broadcast_lead, const, or_all, sext, zext
 
-from .fops import F, MirrorBackend
+from .fops import CircuitBackend, F, MirrorBackend
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,13 @@ class TC:
 
 class FixMirror:
     """numpy int64: the specification of every circuit below."""
+
+    def __init__(self, be: MirrorBackend) -> None:
+        self.be = be
+
+    def exponent_offset(self, x, y, k: int):
+        """x - y + k for exponents x, y (y may be None): what scale2 adds."""
+        return np.int64(x) - (0 if y is None else np.int64(y)) + k
 
     def block_emax(self, x: F) -> np.ndarray:
         """The largest biased exponent over all of ``x`` (a 0-d int64)."""
@@ -109,6 +117,21 @@ class FixMirror:
     def concat_tc(self, xs: list[TC], axis: int) -> TC:
         return TC(np.concatenate([x.v for x in xs], axis), max(x.w for x in xs))
 
+    def to_float(self, x: TC) -> tuple[F, int]:
+        """(x / 2^drop as float32, rounded to nearest even, drop): words wider than 32
+        bits lose their low ``drop`` bits first (a floor)."""
+        drop = max(x.w - 32, 0)
+        return F(self.be, m.i2f(np.asarray(x.v, np.int64) >> drop)), drop
+
+    def scale2(self, x: F, k) -> F:
+        """x * 2^k by adding k to the exponent field modulo 256 (zeros stay zero; the
+        caller keeps results in range)."""
+        bits = np.asarray(x.v, np.float32).view(np.uint32).astype(np.int64)
+        e = (bits >> 23) & 0xFF
+        e2 = np.where(e != 0, (e + np.asarray(k, np.int64)) & 0xFF, 0)
+        out = (bits & ~(0xFF << 23)) | (e2 << 23)
+        return F(x.be, out.astype(np.uint32).view(np.float32))
+
     def sum_tc(self, x: TC) -> TC:
         """Sum over axis 0 (exact: any order gives the same integer)."""
         levels = max(int(x.v.shape[0] - 1).bit_length(), 0)
@@ -122,8 +145,8 @@ def _exponent(v) -> np.ndarray:
 class FixCircuit:
     """The same operations as gates into ``builder``."""
 
-    def __init__(self, builder) -> None:
-        self.b = builder
+    def __init__(self, be: CircuitBackend) -> None:
+        self.be, self.b = be, be.b
 
     def block_emax(self, x: F) -> np.ndarray:
         """Max tree over the 8-bit exponent fields of all of ``x``: one compare (8 AND)
@@ -194,6 +217,24 @@ class FixCircuit:
         w = max(x.w for x in xs)
         return TC(np.concatenate([sext(x.v, w) for x in xs], axis), w)
 
+    def to_float(self, x: TC) -> tuple[F, int]:
+        drop = max(x.w - 32, 0)
+        word = sext(np.asarray(x.v)[..., drop:], 32)
+        return F(self.be, fconvert.i2f(self.b, word)), drop
+
+    def scale2(self, x: F, k) -> F:
+        b = self.b
+        v = np.asarray(x.v)
+        e = v[..., 23:31]
+        kw = const(int(k) % 256, 8) if isinstance(k, (int, np.integer)) else k
+        e2 = b.and_(integer.add(b, e, kw), or_all(b, e)[..., None])
+        return F(x.be, np.concatenate([v[..., :23], e2, v[..., 31:]], axis=-1))
+
+    def exponent_offset(self, x, y, k: int):
+        """x - y + k modulo 256 for 8-bit exponent words (y may be None)."""
+        total = integer.add(self.b, x, const(k % 256, 8))
+        return total if y is None else integer.sub(self.b, total, y)
+
     def sum_tc(self, x: TC) -> TC:
         """Pairwise tree over axis 0, one bit wider per level (no overflow)."""
         v, w = np.asarray(x.v), x.w
@@ -208,5 +249,5 @@ class FixCircuit:
 def fix_backend(x: F):
     """The fixed-point twin of the float backend ``x`` runs on."""
     if isinstance(x.be, MirrorBackend):
-        return FixMirror()
-    return FixCircuit(x.be.b)
+        return FixMirror(x.be)
+    return FixCircuit(x.be)

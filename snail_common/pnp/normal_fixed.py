@@ -39,8 +39,13 @@ DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 _U_COLS = [0, 2, 3, 4, 5]
 _V_COLS = [1, 2, 3, 4, 5]
 _PAIRS = [(i, k) for i in range(5) for k in range(i, 5)]
-_LEFT = [i for i, _ in _PAIRS]
-_RIGHT = [k for _, k in _PAIRS]
+# Pair (1, 4) of either row, the (2, 5) entry, is a b c times the weight: minus pair (0, 2)
+# of ju and minus pair (0, 3) of jv, so each row computes 14 products (normal.py).
+_COMPUTED = [pair for pair in _PAIRS if pair != (1, 4)]
+_LEFT = [i for i, _ in _COMPUTED]
+_RIGHT = [k for _, k in _COMPUTED]
+_MIRRORED = (_COMPUTED.index((0, 2)), _COMPUTED.index((0, 3)))
+_ORDER = [_COMPUTED.index(p) if p != (1, 4) else len(_COMPUTED) for p in _PAIRS]
 
 
 def _sources(cols: list[int], entries: list[tuple[int, ...]]) -> list[int | None]:
@@ -87,7 +92,10 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
     jac = fx.stack([ju, jv], 1)                                   # (n, 2, 5)
     wjac = fx.mul(w[:, :, None], jac, F_W, jac.w)
     pair_w = 2 * jac.w - DROP
-    hpair = fx.twos(fx.mul(wjac[:, :, _LEFT], jac[:, :, _RIGHT], DROP, pair_w))
+    computed = fx.mul(wjac[:, :, _LEFT], jac[:, :, _RIGHT], DROP, pair_w)  # (n, 2, 14)
+    mirrored = fx.neg(fx.stack([computed[:, 0, _MIRRORED[0]], computed[:, 1, _MIRRORED[1]]], 1))
+    hpair = fx.twos(fx.stack([*(computed[:, :, p] for p in range(len(_COMPUTED))),
+                              mirrored], 2)[:, :, _ORDER])
     entries = [e for e in UPPER if e != (0, 1)]
     hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
     hess = fx.sum_tc(hterms)
@@ -134,3 +142,23 @@ def decode(weights: np.ndarray, out: dict[str, np.ndarray]) -> dict[str, np.ndar
     grad = np.asarray(out["grad"], np.float64) * np.exp2(col + sr + DROP) * top
     cost = float(out["cost"]) * 2.0 ** _block_scale(out["ek"], W_COST)
     return {"hess": hess, "grad": grad, "cost": np.float64(cost)}
+
+
+def float_system(R: F, hess, grad, cost, ek, ec, er):
+    """For a solve inside the circuit: the integer sums as float32 (hess, grad, cost) and
+    the function taking the solution y of hess y = -grad to the step in the float
+    circuit's units. The solve needs no scales: with H = D H' D and g = s D g' (D the
+    column scales), the step is s D^-1 y; only the cost and the step get exponents."""
+    fx = fix_backend(R)
+    hess_f, drop_h = fx.to_float(hess)
+    grad_f, drop_g = fx.to_float(grad)
+    cost_f, drop_k = fx.to_float(cost)
+    cost_f = fx.scale2(cost_f, fx.exponent_offset(ek, None, drop_k - W_COST - 126))
+    shift = drop_g - drop_h
+    to_translation = fx.exponent_offset(er, ec, W_C - W_R + shift)        # sr - sc
+    to_rotation = fx.exponent_offset(er, None, F_A - W_R - 126 + shift)   # sr + F_A
+
+    def unscale(y: F) -> F:
+        return concat([fx.scale2(y[0:3], to_translation), fx.scale2(y[3:6], to_rotation)])
+
+    return hess_f, grad_f, cost_f, unscale

@@ -19,7 +19,7 @@ from .fixed import TC
 from .fops import F, stack
 from .ldlt import ldlt_solve
 from .normal import UPPER, normal_equations
-from .normal_fixed import W_W, normal_equations_fixed
+from .normal_fixed import W_W, float_system, normal_equations_fixed
 from .svd import pinv_step, svd_solve, weighted_system
 
 ALGORITHMS = ("lm", "gn")
@@ -95,10 +95,16 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
                                          inputs["world"], inputs["weights"])
         with cost.be.shallow():
             return {"step": pinv_step(jac, res), "cost": cost}
-    hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
-                                        inputs["world"], inputs["weights"])
+    unscale = None
+    if arith == "fixed":
+        hess, grad, cost, unscale = float_system(inputs["R"], *normal_equations_fixed(
+            inputs["R"], inputs["t"], inputs["image"], inputs["world"], inputs["weights"],
+            inputs["wfix"].v))
+    else:
+        hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
+                                            inputs["world"], inputs["weights"])
     with hess.be.shallow():  # the solve is one long chain: spend gates to cut depth
         if algorithm == "lm":
             hess = damped(hess, inputs["lam"])
         step = _solver(solver)(hess, -grad)
-    return {"step": step, "cost": cost}
+    return {"step": step if unscale is None else unscale(step), "cost": cost}

@@ -3,7 +3,9 @@
 A circuit id names everything that shapes the circuit, e.g. ``lm-sil-ldlt-n6``; the
 registry knows it as ``loc/lm-sil-ldlt-n6`` (family.py registers the family). The circuit
 that returns the normal equations for the client to solve (solver ``client``) is the
-same for LM and GN: ``ne-sil-n6``.
+same for LM and GN: ``ne-sil-n6``. With the per-point sums in fixed point
+(normal_fixed.py) it is ``nx-sil-n6``, and an in-circuit solve takes the suffix ``-x``
+(``lm-sil-ldlt-n6-x``).
 
 The map-owner variant (suffix ``-mo``, e.g. ``lm-sil-ldlt-n6-mo``) takes the map points as
 two XOR shares: ``world_masked`` from the device (xyz ^ P, the float32 bits under a pad)
@@ -49,7 +51,7 @@ MAX_POINTS = 4096
 SHALLOW_POINTS = 32
 ID_PATTERN = re.compile(r"^(?:(?P<algorithm>lm|gn)-(?P<mode>sil|do)-(?P<solver>ldlt|svd)"
                         r"-n(?P<points>[1-9][0-9]{0,3})(?:-i(?P<iterations>[1-9][0-9]?))?"
-                        r"(?P<owner>-mo)?|n(?P<arith>[ex])-sil-n(?P<normal_points>[1-9][0-9]{0,3}))$")
+                        r"(?P<fixed>-x)?(?P<owner>-mo)?|n(?P<arith>[ex])-sil-n(?P<normal_points>[1-9][0-9]{0,3}))$")
 MASKED = "world_masked"  # the device's share of the map points: float32 bits ^ pad
 OWNER_PAD = "world_pad"  # the map owner's share: the pad, its last input group
 
@@ -90,8 +92,9 @@ class Spec:
                              "an iteration count)")
         if self.arith not in ARITHS:
             raise ValueError(f"arith must be one of {ARITHS}, got {self.arith!r}")
-        if self.arith == "fixed" and self.solver != CLIENT:
-            raise ValueError("arith 'fixed' is the client-solve circuit's (solver 'client')")
+        if self.arith == "fixed" and (self.mode != "sil" or self.solver == "svd"):
+            raise ValueError("arith 'fixed' is for SIL circuits solved by the client or by "
+                             "LDL^T")
         if self.owner and (self.mode != "sil" or self.solver == CLIENT):
             raise ValueError("the map-owner variant is a SIL circuit that solves inside "
                              "(the normal equations would reveal the map)")
@@ -101,9 +104,9 @@ class Spec:
         if self.solver == CLIENT:
             return f"n{'x' if self.arith == 'fixed' else 'e'}-sil-n{self.points}"
         base = f"{self.algorithm}-{self.mode}-{self.solver}-n{self.points}"
-        if self.owner:
-            return f"{base}-mo"
-        return base if self.iterations == DO_ITERATIONS else f"{base}-i{self.iterations}"
+        if self.iterations != DO_ITERATIONS:
+            base = f"{base}-i{self.iterations}"
+        return base + ("-x" if self.arith == "fixed" else "") + ("-mo" if self.owner else "")
 
     @property
     def registry_id(self) -> str:
@@ -121,7 +124,8 @@ class Spec:
                        arith="fixed" if match["arith"] == "x" else "float")
         iterations = int(match["iterations"] or DO_ITERATIONS)
         return cls(match["algorithm"], match["mode"], match["solver"], int(match["points"]),
-                   iterations, owner=bool(match["owner"]))
+                   iterations, owner=bool(match["owner"]),
+                   arith="fixed" if match["fixed"] else "float")
 
 
 def build(spec: Spec) -> Circuit:
@@ -151,7 +155,8 @@ def _input(b: CircuitBuilder, spec: Spec, name: str, shape: tuple[int, ...]) -> 
 
 def output_dtype(spec: Spec, name: str) -> str:
     """float32, but the fixed-point circuit returns integers and exponents."""
-    return FIXED_OUTPUT_TYPES[name] if spec.arith == "fixed" else "float32"
+    client_fixed = spec.arith == "fixed" and spec.solver == CLIENT
+    return FIXED_OUTPUT_TYPES[name] if client_fixed else "float32"
 
 
 def output_shapes(spec: Spec) -> dict[str, tuple[int, ...]]:
