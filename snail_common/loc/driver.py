@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import apply_step
+from .quadratic import damped_step, gain, predicted_reduction
 from .types import IterationBackend, IterationResult, Normalized, Pose
 
 ALGORITHMS = ("lm", "gn")
@@ -104,32 +105,98 @@ def run_lm(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
            *, lam0: float = LAMBDA_START, lam_min: float = LAMBDA_MIN,
            lam_max: float = LAMBDA_MAX, cost_tol: float = COST_TOL,
            step_tol: float = STEP_TOL) -> DriverResult:
-    """Levenberg-Marquardt with accept/reject and lambda x10 / /10 (see the module doc)."""
+    """Levenberg-Marquardt with accept/reject (see the module doc): damped by the gain
+    ratio when the backend returns the normal equations, by x10 / /10 when only steps."""
     call = _Caller(nrm, backend)
+    limits = _Limits(max_iterations, lam_min, lam_max, cost_tol, step_tol)
     lam = min(max(lam0, lam_min), lam_max)
-    pose, res = pose0, call(pose0, lam, "start")
+    start = call(pose0, lam, "start")
+    loop = _lm_on_steps if start.normal is None else _lm_on_model
+    pose, cost, iterations, converged = loop(call, pose0, start, lam, limits)
+    return DriverResult(pose, cost, iterations, len(call.history), converged,
+                        tuple(call.history))
+
+
+@dataclass(frozen=True)
+class _Limits:
+    max_iterations: int
+    lam_min: float
+    lam_max: float
+    cost_tol: float
+    step_tol: float
+
+
+def _lm_on_steps(call: _Caller, pose: Pose, res: IterationResult, lam: float,
+                 limits: _Limits) -> tuple[Pose, float, int, bool]:
+    """The circuit returns only the damped step: a candidate is called with lambda / 10
+    already, and a rejected step costs a retry call at lambda * 10."""
     cost, step = res.cost, res.step
-    iterations, converged = 0, relative_step(step, pose) <= step_tol
-    while not converged and iterations < max_iterations:
-        cand, lam_next = apply_step(pose, step), max(lam / 10.0, lam_min)
+    iterations, converged = 0, relative_step(step, pose) <= limits.step_tol
+    while not converged and iterations < limits.max_iterations:
+        cand, lam_next = apply_step(pose, step), max(lam / 10.0, limits.lam_min)
         res = call(cand, lam_next, "candidate")
         iterations += 1
         if _better(res.cost, cost):
             call.mark_accepted()
-            converged = (cost - res.cost <= cost_tol * cost
-                         or relative_step(res.step, cand) <= step_tol)
+            converged = (cost - res.cost <= limits.cost_tol * cost
+                         or relative_step(res.step, cand) <= limits.step_tol)
             pose, cost, step, lam = cand, res.cost, res.step, lam_next
             continue
-        if abs(res.cost - cost) <= cost_tol * cost:
+        if _indistinguishable(res.cost, cost, limits.cost_tol):
             converged = True
-        elif lam >= lam_max or iterations >= max_iterations:
+        elif lam >= limits.lam_max or iterations >= limits.max_iterations:
             break
         else:
-            lam = min(lam * 10.0, lam_max)
+            lam = min(lam * 10.0, limits.lam_max)
             step = call(pose, lam, "retry").step
-            converged = relative_step(step, pose) <= step_tol
-    return DriverResult(pose, cost, iterations, len(call.history), converged,
-                        tuple(call.history))
+            converged = relative_step(step, pose) <= limits.step_tol
+    return pose, cost, iterations, converged
+
+
+def _lm_on_model(call: _Caller, pose: Pose, res: IterationResult, lam: float,
+                 limits: _Limits) -> tuple[Pose, float, int, bool]:
+    """The client holds the normal equations: steps are damped here, a rejected one is
+    re-damped with no call, and lambda follows the gain ratio (Nielsen)."""
+    cost, normal, nu = res.cost, res.normal, 2.0
+    step = damped_step(normal.hess, normal.grad, lam)
+    iterations = 0
+    converged = _settled(res, pose, step, limits.cost_tol, limits.step_tol)
+    while not converged and iterations < limits.max_iterations:
+        cand = apply_step(pose, step)
+        res = call(cand, lam, "candidate")
+        iterations += 1
+        if _better(res.cost, cost):
+            call.mark_accepted()
+            rho = (cost - res.cost) / predicted_reduction(normal, step)
+            lam = min(max(lam * max(1 / 3, 1 - (2 * rho - 1) ** 3), limits.lam_min),
+                      limits.lam_max)
+            pose, cost, normal, nu = cand, res.cost, res.normal, 2.0
+            step = damped_step(normal.hess, normal.grad, lam)
+            converged = _settled(res, pose, step, limits.cost_tol, limits.step_tol)
+            continue
+        if _indistinguishable(res.cost, cost, limits.cost_tol):
+            converged = True
+        elif lam >= limits.lam_max:
+            break
+        else:
+            lam, nu = min(lam * nu, limits.lam_max), 2 * nu
+            step = damped_step(normal.hess, normal.grad, lam)
+            converged = relative_step(step, pose) <= limits.step_tol
+    return pose, cost, iterations, converged
+
+
+def _settled(res: IterationResult, pose: Pose, step: np.ndarray, cost_tol: float,
+             step_tol: float) -> bool:
+    """Nothing measurable left at ``pose`` (where ``res`` was returned): the next step is
+    below step_tol or, when the normal equations are known, the model's best step gains
+    at most cost_tol of the cost."""
+    return (relative_step(step, pose) <= step_tol
+            or (res.normal is not None and gain(res.normal) <= cost_tol * res.cost))
+
+
+def _indistinguishable(new: float, old: float, cost_tol: float) -> bool:
+    """A rejected candidate's cost equal to the current one at the backend's precision."""
+    return abs(new - old) <= cost_tol * old
 
 
 def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iterations: int = 20,
@@ -142,7 +209,7 @@ def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
     pose, res = pose0, call(pose0, 0.0, "start")
     best_pose, best_cost = pose, res.cost
     cost, step, scale = res.cost, res.step, 1.0
-    iterations, converged = 0, relative_step(step, pose) <= step_tol
+    iterations, converged = 0, _settled(res, pose, step, cost_tol, step_tol)
     while not converged and iterations < max_iterations:
         cand = apply_step(pose, scale * step)
         res = call(cand, 0.0, "candidate" if scale == 1.0 else "halved")
@@ -150,15 +217,15 @@ def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
         if not math.isfinite(res.cost) and not safeguard:
             break
         if safeguard and not _better(res.cost, cost):
-            if abs(res.cost - cost) <= cost_tol * cost:
-                converged = True  # no progress measurable at this precision
+            if _indistinguishable(res.cost, cost, cost_tol):
+                converged = True
             elif scale > MIN_STEP_SCALE:
                 scale /= 2
                 continue
             break
         call.mark_accepted()
-        converged = (abs(cost - res.cost) <= cost_tol * cost
-                     or relative_step(res.step, cand) <= step_tol)
+        converged = ((res.normal is None and abs(cost - res.cost) <= cost_tol * cost)
+                     or _settled(res, cand, res.step, cost_tol, step_tol))
         pose, cost, step, scale = cand, res.cost, res.step, 1.0
         if cost < best_cost:
             best_pose, best_cost = pose, cost
