@@ -160,7 +160,7 @@ def _lm_on_model(call: _Caller, pose: Pose, res: IterationResult, lam: float,
     cost, normal, nu = res.cost, res.normal, 2.0
     step = damped_step(normal.hess, normal.grad, lam)
     iterations = 0
-    converged = _settled(res, pose, step, limits.cost_tol, limits.step_tol)
+    converged = _settled(res, pose, limits.cost_tol, limits.step_tol)
     while not converged and iterations < limits.max_iterations:
         cand = apply_step(pose, step)
         res = call(cand, lam, "candidate")
@@ -172,7 +172,7 @@ def _lm_on_model(call: _Caller, pose: Pose, res: IterationResult, lam: float,
                       limits.lam_max)
             pose, cost, normal, nu = cand, res.cost, res.normal, 2.0
             step = damped_step(normal.hess, normal.grad, lam)
-            converged = _settled(res, pose, step, limits.cost_tol, limits.step_tol)
+            converged = _settled(res, pose, limits.cost_tol, limits.step_tol)
             continue
         if _indistinguishable(res.cost, cost, limits.cost_tol):
             converged = True
@@ -180,18 +180,19 @@ def _lm_on_model(call: _Caller, pose: Pose, res: IterationResult, lam: float,
             break
         else:
             lam, nu = min(lam * nu, limits.lam_max), 2 * nu
-            step = damped_step(normal.hess, normal.grad, lam)
-            converged = relative_step(step, pose) <= limits.step_tol
+            step = damped_step(normal.hess, normal.grad, lam)  # same pose, same model
     return pose, cost, iterations, converged
 
 
-def _settled(res: IterationResult, pose: Pose, step: np.ndarray, cost_tol: float,
-             step_tol: float) -> bool:
-    """Nothing measurable left at ``pose`` (where ``res`` was returned): the next step is
-    below step_tol or, when the normal equations are known, the model's best step gains
-    at most cost_tol of the cost."""
-    return (relative_step(step, pose) <= step_tol
-            or (res.normal is not None and gain(res.normal) <= cost_tol * res.cost))
+def _settled(res: IterationResult, pose: Pose, cost_tol: float, step_tol: float) -> bool:
+    """Nothing measurable left at ``pose``, where ``res`` was returned: the next step is
+    below step_tol or, when the normal equations are known, the model's best (undamped)
+    step is, or gains at most cost_tol of the cost. Undamped: a damped step is small
+    because lambda is large as much as because the optimum is near."""
+    if res.normal is None:
+        return relative_step(res.step, pose) <= step_tol
+    best = damped_step(res.normal.hess, res.normal.grad, 0.0)
+    return relative_step(best, pose) <= step_tol or gain(res.normal) <= cost_tol * res.cost
 
 
 def _indistinguishable(new: float, old: float, cost_tol: float) -> bool:
@@ -209,7 +210,7 @@ def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
     pose, res = pose0, call(pose0, 0.0, "start")
     best_pose, best_cost = pose, res.cost
     cost, step, scale = res.cost, res.step, 1.0
-    iterations, converged = 0, _settled(res, pose, step, cost_tol, step_tol)
+    iterations, converged = 0, _settled(res, pose, cost_tol, step_tol)
     while not converged and iterations < max_iterations:
         cand = apply_step(pose, scale * step)
         res = call(cand, 0.0, "candidate" if scale == 1.0 else "halved")
@@ -225,7 +226,7 @@ def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
             break
         call.mark_accepted()
         converged = ((res.normal is None and abs(cost - res.cost) <= cost_tol * cost)
-                     or _settled(res, cand, res.step, cost_tol, step_tol))
+                     or _settled(res, cand, cost_tol, step_tol))
         pose, cost, step, scale = cand, res.cost, res.step, 1.0
         if cost < best_cost:
             best_pose, best_cost = pose, cost
