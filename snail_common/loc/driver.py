@@ -189,7 +189,9 @@ def _lm_on_model(call: _Caller, pose: Pose, res: IterationResult, lam: float,
         iterations += 1
         if _better(res.cost, cost):
             call.mark_accepted()
-            rho = (cost - res.cost) / predicted_reduction(normal, step)
+            predicted = predicted_reduction(normal, step)
+            # rho < 0 (a model tipped non-convex at the noise floor) raises lambda steeply
+            rho = (cost - res.cost) / predicted if predicted != 0.0 else 0.0
             lam = min(max(lam * max(1 / 3, 1 - (2 * rho - 1) ** 3), limits.lam_min),
                       limits.lam_max)
             pose, cost, normal, nu = cand, res.cost, res.normal, 2.0
