@@ -35,11 +35,12 @@ def scene(seed: int, index: int, planar_share: float):
 def sweep(scenes: int, algorithm: str, seed: int = 1, planar_share: float = 0.25,
           solve: str | None = None, arith: str | None = None,
           tick: Callable[[], None] = lambda: None) -> dict:
-    """Localize ``scenes`` random scenes; the pass rate and every failure."""
+    """Localize ``scenes`` random scenes; the pass rate, every failure, and every scene
+    that ended unconverged (at the iteration cap, say) even where it passed."""
     options = Options(algorithm, solve=solve, min_invocations=0, arith=arith)
     backend = MirrorBackend()
     failures, passed, by_planar = [], 0, {"planar": [0, 0], "general": [0, 0]}
-    iterations = []
+    iterations, invocations, unconverged = [], [], []
     for k in range(scenes):
         n, planar, problem = scene(seed, k, planar_share)
         result = localize(problem, options, backend)
@@ -47,6 +48,9 @@ def sweep(scenes: int, algorithm: str, seed: int = 1, planar_share: float = 0.25
         kind = by_planar["planar" if planar else "general"]
         kind[1] += 1
         iterations.append(result.iterations)
+        invocations.append(result.invocations)
+        if not result.converged:
+            unconverged.append(k)
         if check["ok"]:
             passed += 1
             kind[0] += 1
@@ -63,6 +67,10 @@ def sweep(scenes: int, algorithm: str, seed: int = 1, planar_share: float = 0.25
             "pass_rate": round(passed / scenes, 5),
             "passed_by_kind": {k: {"passed": v[0], "scenes": v[1]} for k, v in
                                by_planar.items()},
-            "iterations": {"median": float(np.median(iterations)),
+            "iterations": {"mean": round(float(np.mean(iterations)), 3),
+                           "median": float(np.median(iterations)),
                            "max": int(max(iterations))},
+            "invocations": {"mean": round(float(np.mean(invocations)), 3),
+                            "max": int(max(invocations))},
+            "not_converged": unconverged,
             "failures": failures}

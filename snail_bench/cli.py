@@ -439,8 +439,11 @@ def accuracy(ctx: click.Context, scenes: int, algorithms: tuple[str, ...], solve
         kinds = ", ".join(f"{k} {v['passed']}/{v['scenes']}"
                           for k, v in row["passed_by_kind"].items())
         click.echo(f"{algorithm}: {row['passed']}/{row['scenes']} within OpenCV's RMS + "
-                   f"max(0.01 px, 0.5 %) ({kinds}); iterations median "
-                   f"{row['iterations']['median']:g}, max {row['iterations']['max']}")
+                   f"max(0.01 px, 0.5 %) ({kinds}); iterations mean "
+                   f"{row['iterations']['mean']:g}, max {row['iterations']['max']}; "
+                   f"invocations mean {row['invocations']['mean']:g}, max "
+                   f"{row['invocations']['max']}; not converged: "
+                   f"{len(row['not_converged'])} {row['not_converged'] or ''}".rstrip())
         for f in row["failures"]:
             note = "" if f["converged"] else " (not converged)"
             click.echo(f"  scene {f['scene']}: n={f['n']}{' planar' if f['planar'] else ''}"

@@ -31,6 +31,9 @@ def test_a_sweep_matches_opencv_and_reports_json():
     for algorithm in ("lm", "gn"):
         row = report[algorithm]
         assert (row["passed"], row["scenes"], row["failures"]) == (25, 25, [])
+        assert row["not_converged"] == []
+        # every circuit run is the start or a trial step: re-damping runs none
+        assert row["invocations"]["max"] == row["iterations"]["max"] + 1
         kinds = row["passed_by_kind"]
         assert kinds["planar"]["scenes"] + kinds["general"]["scenes"] == 25
 

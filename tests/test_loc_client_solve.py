@@ -13,8 +13,9 @@ from test_loc_circuits import _bits, random_values
 from snail_common.circuit.cleartext import evaluate
 from snail_common.circuit.schedule import schedule_circuit
 from snail_common.loc.backends import MirrorBackend
-from snail_common.loc.pipeline import Options, _symmetric, damped_step, localize
+from snail_common.loc.pipeline import Options, _symmetric, localize
 from snail_common.loc.problem import load_problem
+from snail_common.loc.quadratic import damped_step
 from snail_common.pnp.do import normal_equations64
 from snail_common.pnp.normal import NORMAL_FRAC
 from snail_common.pnp.spec import Spec, build, run_mirror

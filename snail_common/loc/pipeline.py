@@ -34,8 +34,9 @@ from .driver import COST_TOL, LAMBDA_START, run
 from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
 from .preprocess import normalize, pad
 from .problem import PoseVectors, Problem, check_in_front
+from .quadratic import damped_step
 from .reference import reprojection_rms
-from .types import IterationResult, Normalized, Pose
+from .types import IterationResult, NormalEquations, Normalized, Pose
 
 MODES = ("sil", "do")
 SOLVES = ("client", "circuit")
@@ -167,27 +168,20 @@ def solve_sil(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
 
 
 class _ClientSolve:
-    """Iterations whose circuit returns the normal equations and the cost: the damped
-    step is solved here, in float64, so asking again at the same pose with another
-    damping (a rejected LM step) runs no circuit. The last two poses are remembered: the
-    current one and its candidate."""
+    """Iterations whose circuit returns the normal equations and the cost: the step is
+    solved here, in float64, and the normal equations go to the driver, which re-damps a
+    rejected LM step itself, so every call is a new pose and one invocation."""
 
     def __init__(self, spec: Spec, backend: Backend, walls: list[float]) -> None:
         self.spec, self.backend, self.walls = spec, backend, walls
-        self._known: dict[bytes, tuple[np.ndarray, np.ndarray, float]] = {}
 
     def __call__(self, problem: Normalized, pose: Pose, lam: float) -> IterationResult:
-        key = pose.R.tobytes() + pose.t.tobytes()
-        if key not in self._known:
-            start = time.perf_counter()
-            out = self.backend.run(self.spec, sil_values(self.spec, problem, pose, lam))
-            self.walls.append(time.perf_counter() - start)
-            self._known[key] = (_symmetric(out["hess"]), np.asarray(out["grad"], np.float64),
-                                float(out["cost"]))
-            while len(self._known) > 2:
-                del self._known[next(iter(self._known))]
-        hess, grad, cost = self._known[key]
-        return IterationResult(step=damped_step(hess, grad, lam), cost=cost)
+        start = time.perf_counter()
+        out = self.backend.run(self.spec, sil_values(self.spec, problem, pose, lam))
+        self.walls.append(time.perf_counter() - start)
+        normal = NormalEquations(_symmetric(out["hess"]), np.asarray(out["grad"], np.float64))
+        return IterationResult(step=damped_step(normal.hess, normal.grad, lam),
+                               cost=float(out["cost"]), normal=normal)
 
 
 def _symmetric(packed: np.ndarray) -> np.ndarray:
@@ -197,15 +191,6 @@ def _symmetric(packed: np.ndarray) -> np.ndarray:
     full[rows, cols] = np.asarray(packed, np.float64)
     full[cols, rows] = full[rows, cols]
     return full
-
-
-def damped_step(hess: np.ndarray, grad: np.ndarray, lam: float) -> np.ndarray:
-    """The step solving (H + lam diag(H)) step = -g (least squares if H is singular; all
-    NaN if the circuit's numbers are not finite, which the driver then rejects)."""
-    system = hess + lam * np.diag(np.diag(hess))
-    if not (np.isfinite(system).all() and np.isfinite(grad).all()):
-        return np.full(6, np.nan)
-    return np.linalg.lstsq(system, -grad, rcond=None)[0]
 
 
 def _solve_do(spec: Spec, options: Options, backend: Backend, nrm: Normalized,

@@ -39,12 +39,23 @@ class Pose:
 
 
 @dataclass(frozen=True)
+class NormalEquations:
+    """J^T W J and J^T W r at a pose: with the cost there, the cost's quadratic model
+    cost + 2 g.step + step^T H step, which the client knows when it solves."""
+
+    hess: np.ndarray  # (6, 6) float64
+    grad: np.ndarray  # (6,) float64
+
+
+@dataclass(frozen=True)
 class IterationResult:
     """What one (secure or reference) iteration returns: the step from the input pose and
-    the cost at the input pose."""
+    the cost at the input pose, and the normal equations when the circuit returns them
+    (the client solves) rather than only the step."""
 
     step: np.ndarray  # (6,) float64: v (3), w (3)
     cost: float
+    normal: NormalEquations | None = None
 
 
 # One iteration: (problem, pose, lambda) -> step and cost at that pose.
