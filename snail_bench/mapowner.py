@@ -127,7 +127,8 @@ def map_owner_row(runner, tls_dir: Path, daemon: Daemon, frame: Frame, points: M
     owner_out = [s["bytes_out"] for s in pad_ots]
     to_evaluator = (sum(owner_out) - sum(r["traffic"]["mapowner_to_garbler"]
                                          for r in records)) // max(len(pad_ots), 1)
-    mo = registry.interface(Spec("lm", "sil", options.solver, n, owner=True).registry_id)
+    mo = registry.interface(Spec("lm", "sil", options.solver, n, owner=True,
+                                 arith=options.arith_used).registry_id)
     return {
         "points": n, "map_points": m, "repeat": repeat,
         "invocations_per_frame": statistics.median(invocations),
@@ -189,12 +190,13 @@ def map_owner_report(points: tuple[int, ...], map_points: tuple[int, ...], repea
                 runner, services):
             owners = dict(zip(scenes, services.map_owners))
             for n in points:
-                spec = Spec("lm", "sil", options.solver, n)
+                spec = Spec("lm", "sil", options.solver, n, arith=options.arith_used)
                 row = {**_measure(runner, spec, repeat), "scheme": scheme}
                 service[spec.circuit_id] = row
                 plain = {"circuit": spec.circuit_id, "and": row["and"],
                          "median_s": row["median_s"]}
-                mo_id = Spec("lm", "sil", options.solver, n, owner=True).circuit_id
+                mo_id = Spec("lm", "sil", options.solver, n, owner=True,
+                             arith=options.arith_used).circuit_id
                 owner[mo_id] = {str(m): {**map_owner_row(runner, services.tls_dir,
                                                          owners[n, m], *scenes[n, m],
                                                          repeat, plain, options),

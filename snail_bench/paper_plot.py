@@ -169,8 +169,9 @@ def _ops(plt, results: dict, paper: dict, out: Path) -> str:
     ax.legend(fontsize=8, ncol=2)
     _save(plt, fig, out, "ops_per_iteration.png")
     return ("## float32 operations per LM iteration\n\n![](ops_per_iteration.png)\n\n"
-            "Ours counted on the circuit's float32 mirror; the normal equations run in a "
-            "narrow float (13 fraction bits), counted as mul/add here.\n\n"
+            "Ours counted on the float32 mirror of the algorithm; the circuit computes the "
+            "Jacobian and the sums over points in fixed point (13-bit products, integer "
+            "sums), counted here as the float operations they replace.\n\n"
             + _table(["op", "n", "paper", "ours", "ours/paper"], rows))
 
 

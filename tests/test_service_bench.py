@@ -59,13 +59,13 @@ def test_service_bench_reports_the_map_owner_settings_extra_cost():
     out = _bench("--points", "6", "--map-points", "64", "--repeat", "1", "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
-    plain = report["service"]["lm-sil-ldlt-n6"]  # the first setting's, same daemons
-    row = report["map_owner"]["lm-sil-ldlt-n6-mo"]["64"]
+    plain = report["service"]["lm-sil-ldlt-n6-x"]  # the first setting's, same daemons
+    row = report["map_owner"]["lm-sil-ldlt-n6-x-mo"]["64"]
     assert (row["points"], row["map_points"], row["repeat"]) == (6, 64, 1)
-    assert row["plain_circuit"] == "lm-sil-ldlt-n6" and row["plain_and"] == plain["and"]
+    assert row["plain_circuit"] == "lm-sil-ldlt-n6-x" and row["plain_and"] == plain["and"]
     assert row["plain_median_s"] == plain["median_s"] > 0
     # the pads come off with free XORs: the same AND gates as the plain circuit
-    assert row["and"] == registry.interface("loc/lm-sil-ldlt-n6-mo").counts["and"] \
+    assert row["and"] == registry.interface("loc/lm-sil-ldlt-n6-x-mo").counts["and"] \
         == plain["and"]
     assert 0 < row["min_s"] <= row["median_s"] <= row["max_s"]
     assert row["timed_iterations"] >= 1 and row["invocations_per_frame"] >= 1

@@ -133,7 +133,8 @@ def localize_shared(frame: Frame, published: PublishedMap, masked: np.ndarray,
                     options: Options, backend: Backend) -> Localized:
     """Refine the frame's pose on the map-owner circuit: the device's share ``masked``
     ((n, 3) uint32) is all it holds of its map points."""
-    spec = Spec(options.algorithm, "sil", options.solver, frame.n, owner=True)
+    spec = Spec(options.algorithm, "sil", options.solver, frame.n, owner=True,
+                arith=options.arith_used)
     nrm = _normalized(frame, np.zeros((frame.n, 3)))
     return _localize(frame, published, nrm, spec, options, SharedWorld(backend, masked))
 
@@ -143,7 +144,7 @@ def localize_known(frame: Frame, published: PublishedMap, values: np.ndarray,
     """The same localization with the map points in the clear (the map owner's (M, 12)
     ``values``) on the plain SIL circuit: the oracle of ``localize_shared``."""
     points = values[published.positions(frame.map_ids)].copy().view("<f4")
-    spec = Spec(options.algorithm, "sil", options.solver, frame.n)
+    spec = Spec(options.algorithm, "sil", options.solver, frame.n, arith=options.arith_used)
     nrm = _normalized(frame, points.astype(np.float64))
     return _localize(frame, published, nrm, spec, options, backend)
 

@@ -80,8 +80,8 @@ class FixMirror:
 
     def unsigned(self, x, width: int) -> SM:
         """Non-negative integers (an input) as magnitudes."""
-        m = np.asarray(x, np.int64)
-        return SM(np.zeros_like(m), m, width)
+        mags = np.asarray(x, np.int64)
+        return SM(np.zeros_like(mags), mags, width)
 
     def zeros_tc(self, lead: tuple[int, ...], width: int) -> TC:
         return TC(np.zeros(lead, np.int64), width)
@@ -177,8 +177,8 @@ class FixCircuit:
         return SM(v[..., 31], mag, width)
 
     def unsigned(self, x, width: int) -> SM:
-        m = zext(np.asarray(x), width)
-        return SM(np.zeros(m.shape[:-1], np.int32), m, width)
+        mags = zext(np.asarray(x), width)
+        return SM(np.zeros(mags.shape[:-1], np.int32), mags, width)
 
     def zeros_tc(self, lead: tuple[int, ...], width: int) -> TC:
         return TC(np.zeros(tuple(lead) + (width,), np.int32), width)

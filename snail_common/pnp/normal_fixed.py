@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fixed import SM, TC, fix_backend
+from .fixed import TC, fix_backend
 from .fops import F, concat
 from .normal import UPPER, residuals
 
@@ -31,8 +31,8 @@ W_A = 14  # their magnitude bits: |a| < 2
 EMAX_A = W_A + 126 - F_A  # the float exponent at the top of that scale
 W_C = 15  # inverse depths, relative to the largest one
 W_R = 15  # residuals, relative to the largest one
-F_W = 9  # weights: the largest is 2^9 (they scale the sums, not the cost: 1000 random
-W_W = 10  # scenes converged as with 15 bits)
+F_W = 9  # weights: the largest is 2^9 (they scale the sums, not the cost: 1,000 random
+W_W = 10  # scenes per algorithm converged as with 15 bits)
 W_COST = 24  # per-point costs, relative to the largest one: every float32 bit of it
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 
@@ -67,7 +67,7 @@ def _gather(fx, terms: TC, n: int, sources: tuple[list, list]) -> TC:
 
 def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
     """(hess (21,), grad (6,), cost (), ek, ec, er), all integers: module doc. ``wfix`` is the
-    (n, 2) integer weights (mirror: int64; circuit: 16-bit input words)."""
+    (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words)."""
     proj, err, inv_z = residuals(R, t, image, world)
     werr = err * weights
     cost_pt = werr * err
@@ -118,9 +118,6 @@ def scales(ec: int, er: int) -> tuple[np.ndarray, float]:
     exponents the circuit returned."""
     sc = _block_scale(ec, W_C)
     return np.array([sc, sc, sc, -F_A, -F_A, -F_A], float), _block_scale(er, W_R)
-
-
-__all__ = ["SM", "normal_equations_fixed", "scales"]
 
 
 def weights_fixed(weights: np.ndarray) -> np.ndarray:
