@@ -50,8 +50,11 @@ def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
     ctx.obj = {"verbose": verbose, "quiet": quiet}
 
 
-ARITH_HELP = ("Per-point arithmetic of the client-solve circuit: fixed (default; integer "
-              "Jacobian and sums, float32 residuals and cost) or float (narrow floats).")
+# --arith of circuit, service and accuracy
+ARITH = click.option("--arith", type=click.Choice(["fixed", "float"]),
+                     help="Per-point arithmetic of a SIL circuit: fixed (default; integer "
+                          "Jacobian and sums, float32 residuals and cost) or float (narrow "
+                          "floats). DO and SVD circuits are float.")
 
 
 @main.command()
@@ -137,7 +140,7 @@ def ops(as_json: bool) -> None:
                    "the client solves; circuit (forced for do): the paper's in-circuit solve.")
 @click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt", show_default=True,
               help="Linear solver for the 6x6 step inside the circuit (--solve circuit).")
-@click.option("--arith", type=click.Choice(["fixed", "float"]), help=ARITH_HELP)
+@ARITH
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def circuit(algorithm: str, mode: str, points: int, solve: str | None, solver: str,
             arith: str | None, as_json: bool) -> None:
@@ -207,7 +210,7 @@ def engine(schemes: tuple[str, ...], as_json: bool) -> None:
               "gates (0: it is an OT, no circuit), the map owner's OT time per invocation "
               "and selection time per frame (from its session log) and bytes per link. "
               "Embedded daemons only; implies --solve circuit, --algorithm lm, --mode sil.")
-@click.option("--arith", type=click.Choice(["fixed", "float"]), help=ARITH_HELP)
+@ARITH
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def service(algorithm: str, mode: str, solve: str | None, solver: str,
             arith: str | None, points: tuple[int, ...], repeat: int,
@@ -407,7 +410,7 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
 @click.option("--solve", type=click.Choice(["client", "circuit"]), default="client",
               show_default=True, help="Which circuit family's mirror: the normal equations "
                                       "solved by the client, or the in-circuit solve.")
-@click.option("--arith", type=click.Choice(["fixed", "float"]), help=ARITH_HELP)
+@ARITH
 @click.option("--planar-share", type=click.FloatRange(0, 1), default=0.25, show_default=True,
               help="Share of scenes whose points lie on one tilted plane (a tag, a wall).")
 @click.option("--seed", type=int, default=1, show_default=True,

@@ -48,10 +48,11 @@ def _options(fn: Callable) -> Callable:
                           "shallower circuit, and a rejected LM step costs no secure run. "
                           "circuit (forced for do): the paper's in-circuit solve."),
         click.option("--arith", type=click.Choice(["fixed", "float"]),
-                     help="Per-point arithmetic of the client-solve circuit. fixed "
+                     help="Per-point arithmetic of a --mode sil circuit. fixed "
                           "(default): the Jacobian and the sums over points in integers, "
-                          "residuals and cost in float32, 0.26 M AND gates at n = 6; "
-                          "float: the same sums in narrow floats (0.36 M)."),
+                          "residuals and cost in float32 (0.25 M AND gates at n = 6 with "
+                          "the client's solve); float: the same sums in narrow floats "
+                          "(0.36 M). --solver svd is float only."),
         click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt",
                      show_default=True, help="6x6 solver inside the circuit (--solve "
                                              "circuit)."),

@@ -8,6 +8,7 @@ from snail_common import families
 from snail_common.net import tls
 from snail_common.net.cli import (
     address,
+    addresses,
     configure_caches,
     daemon_options,
     fail,
@@ -20,12 +21,6 @@ from snail_common.net.parent import exit_with_parent
 from snail_common.net.service import run_daemon
 
 from .daemon import GarblerDaemon
-
-
-def addresses(ctx: click.Context, param: click.Parameter,
-              values: tuple[str, ...]) -> tuple[tuple[str, int], ...]:
-    """click callback for a repeatable HOST:PORT option."""
-    return tuple(address(ctx, param, value) for value in values)
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})

@@ -25,7 +25,7 @@ from snail_common.pnp.do import do_reference, normal_equations64, pinv_solve64
 from snail_common.pnp.normal import UPPER
 from snail_common.pnp.normal_fixed import decode, weights_fixed
 from snail_common.pnp.sil import CLIENT
-from snail_common.pnp.spec import Spec, run_mirror
+from snail_common.pnp.spec import Spec, integer_outputs, run_mirror
 
 from .types import Normalized, Pose
 
@@ -64,6 +64,12 @@ def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> Value
     return values
 
 
+def circuit_outputs(spec: Spec, values: Values, out: Values) -> Values:
+    """A circuit's outputs as the float circuit names them: fixed-point sums decoded with
+    the weights they were computed with."""
+    return decode(values["weights"], out) if integer_outputs(spec) else out
+
+
 class Backend:
     """Runs localization circuits; counts its invocations."""
 
@@ -73,13 +79,9 @@ class Backend:
         self.invocations = 0
 
     def run(self, spec: Spec, values: Values) -> Values:
-        """One invocation of the circuit of ``spec`` on named inputs: its named outputs
-        (a fixed-point circuit's decoded to the float circuit's)."""
+        """One invocation of the circuit of ``spec`` on named inputs: its named outputs."""
         self.invocations += 1
-        out = self._run(spec, values)
-        if spec.arith == "fixed" and "ec" in out:
-            return decode(values["weights"], out)
-        return out
+        return self._run(spec, values)
 
     def _run(self, spec: Spec, values: Values) -> Values:
         raise NotImplementedError
@@ -127,7 +129,7 @@ class MirrorBackend(Backend):
     name = "mirror"
 
     def _run(self, spec: Spec, values: Values) -> Values:
-        return run_mirror(spec, values)
+        return circuit_outputs(spec, values, run_mirror(spec, values))
 
 
 def cleartext_runner(circuit_id: str, bits: np.ndarray) -> np.ndarray:
@@ -155,4 +157,5 @@ class CircuitBackend(Backend):
     def _run(self, spec: Spec, values: Values) -> Values:
         iface = interface(spec)
         bits = encode_inputs(iface, values)[0]
-        return decode_outputs(iface, self.runner(spec.registry_id, bits))
+        return circuit_outputs(spec, values,
+                               decode_outputs(iface, self.runner(spec.registry_id, bits)))

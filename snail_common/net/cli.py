@@ -27,6 +27,12 @@ def address(ctx: click.Context, param: click.Parameter, value: str | None):
         raise click.BadParameter(str(exc)) from None
 
 
+def addresses(ctx: click.Context, param: click.Parameter,
+              values: tuple[str, ...]) -> tuple[tuple[str, int], ...]:
+    """click callback for a repeatable HOST:PORT option."""
+    return tuple(address(ctx, param, value) for value in values)
+
+
 def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
     """The flags every daemon takes (besides its addresses)."""
     defaults = Options()

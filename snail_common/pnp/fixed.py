@@ -30,6 +30,10 @@ from snail_common.arith.words import broadcast_lead, const, or_all, sext, zext
 
 from .fops import CircuitBackend, F, MirrorBackend
 
+# from_float's magnitudes count units of 2^(emax - width - SCALE_BIAS): the biased exponent
+# emax (bias 127) is that of the block's top binade [2^(emax-127), 2^(emax-126))
+SCALE_BIAS = 126
+
 
 @dataclass(frozen=True)
 class SM:
@@ -67,7 +71,7 @@ class FixMirror:
         return np.int64(_exponent(x.v).max())
 
     def from_float(self, x: F, emax, width: int) -> SM:
-        """x as ``width``-bit magnitudes at scale 2^(emax - width - 126); above that
+        """x as ``width``-bit magnitudes at scale 2^(emax - width - SCALE_BIAS); above that
         scale (e > emax, only with a public emax) the magnitude saturates."""
         bits = np.asarray(x.v, np.float32).view(np.uint32).astype(np.int64)
         e = (bits >> 23) & 0xFF

@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fixed import TC, fix_backend
+from .fixed import SCALE_BIAS, TC, fix_backend
 from .fops import F, concat
 from .normal import UPPER, residuals
 
 F_A = 13  # fraction bits of the projections a = x/z, b = y/z
 W_A = 14  # their magnitude bits: |a| < 2
-EMAX_A = W_A + 126 - F_A  # the float exponent at the top of that scale
+EMAX_A = W_A + SCALE_BIAS - F_A  # the float exponent at the top of that scale
 W_C = 15  # inverse depths, relative to the largest one
 W_R = 15  # residuals, relative to the largest one
 F_W = 9  # weights: the largest is 2^9 (they scale the sums, not the cost: 1,000 random
@@ -110,7 +110,7 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
 
 def _block_scale(emax, width: int) -> float:
     """log2 of the unit of a block's magnitudes (fixed.py: from_float)."""
-    return float(int(emax) - width - 126)
+    return float(int(emax) - width - SCALE_BIAS)
 
 
 def scales(ec: int, er: int) -> tuple[np.ndarray, float]:
@@ -150,10 +150,10 @@ def float_system(R: F, hess, grad, cost, ek, ec, er):
     hess_f, drop_h = fx.to_float(hess)
     grad_f, drop_g = fx.to_float(grad)
     cost_f, drop_k = fx.to_float(cost)
-    cost_f = fx.scale2(cost_f, fx.exponent_offset(ek, None, drop_k - W_COST - 126))
+    cost_f = fx.scale2(cost_f, fx.exponent_offset(ek, None, drop_k - W_COST - SCALE_BIAS))
     shift = drop_g - drop_h
     to_translation = fx.exponent_offset(er, ec, W_C - W_R + shift)        # sr - sc
-    to_rotation = fx.exponent_offset(er, None, F_A - W_R - 126 + shift)   # sr + F_A
+    to_rotation = fx.exponent_offset(er, None, F_A - W_R - SCALE_BIAS + shift)   # sr + F_A
 
     def unscale(y: F) -> F:
         return concat([fx.scale2(y[0:3], to_translation), fx.scale2(y[3:6], to_rotation)])

@@ -25,7 +25,7 @@ from .svd import pinv_step, svd_solve, weighted_system
 ALGORITHMS = ("lm", "gn")
 CLIENT = "client"
 SOLVERS = ("ldlt", "svd", CLIENT)
-ARITHS = ("float", "fixed")  # the client-solve circuit's per-point arithmetic
+ARITHS = ("float", "fixed")  # a SIL circuit's per-point arithmetic (normal_fixed.py)
 _DIAG = [UPPER.index((i, i)) for i in range(6)]
 
 
@@ -81,9 +81,7 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     if solver == CLIENT and arith == "fixed":
-        hess, grad, cost, ek, ec, er = normal_equations_fixed(
-            inputs["R"], inputs["t"], inputs["image"], inputs["world"], inputs["weights"],
-            inputs["wfix"].v)
+        hess, grad, cost, ek, ec, er = _fixed_sums(inputs)
         return {"hess": hess, "grad": grad, "cost": cost,
                 **{name: TC(e, 8) for name, e in (("ek", ek), ("ec", ec), ("er", er))}}
     if solver == CLIENT:
@@ -97,9 +95,7 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
             return {"step": pinv_step(jac, res), "cost": cost}
     unscale = None
     if arith == "fixed":
-        hess, grad, cost, unscale = float_system(inputs["R"], *normal_equations_fixed(
-            inputs["R"], inputs["t"], inputs["image"], inputs["world"], inputs["weights"],
-            inputs["wfix"].v))
+        hess, grad, cost, unscale = float_system(inputs["R"], *_fixed_sums(inputs))
     else:
         hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
                                             inputs["world"], inputs["weights"])
@@ -108,3 +104,9 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
             hess = damped(hess, inputs["lam"])
         step = _solver(solver)(hess, -grad)
     return {"step": step if unscale is None else unscale(step), "cost": cost}
+
+
+def _fixed_sums(inputs: dict[str, F]) -> tuple:
+    """normal_equations_fixed on the circuit's named inputs."""
+    return normal_equations_fixed(inputs["R"], inputs["t"], inputs["image"], inputs["world"],
+                                  inputs["weights"], inputs["wfix"].v)

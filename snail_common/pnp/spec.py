@@ -68,7 +68,7 @@ class Spec:
     points: int = 6
     iterations: int = DO_ITERATIONS
     owner: bool = False  # map points as device and map-owner shares (module doc)
-    arith: str = "float"  # the client-solve circuit's per-point work (normal_fixed.py)
+    arith: str = "float"  # a SIL circuit's per-point arithmetic (normal_fixed.py)
 
     def __post_init__(self) -> None:
         if self.algorithm not in ALGORITHMS:
@@ -153,10 +153,15 @@ def _input(b: CircuitBuilder, spec: Spec, name: str, shape: tuple[int, ...]) -> 
     return b.input(name, shape, bits=bits, dtype=dtype)
 
 
+def integer_outputs(spec: Spec) -> bool:
+    """Whether the circuit returns fixed-point sums and their exponents (the client decodes
+    them with normal_fixed.decode) rather than float32 values."""
+    return spec.arith == "fixed" and spec.solver == CLIENT
+
+
 def output_dtype(spec: Spec, name: str) -> str:
-    """float32, but the fixed-point circuit returns integers and exponents."""
-    client_fixed = spec.arith == "fixed" and spec.solver == CLIENT
-    return FIXED_OUTPUT_TYPES[name] if client_fixed else "float32"
+    """float32, but the fixed-point sums are integers and exponents."""
+    return FIXED_OUTPUT_TYPES[name] if integer_outputs(spec) else "float32"
 
 
 def output_shapes(spec: Spec) -> dict[str, tuple[int, ...]]:
@@ -164,9 +169,9 @@ def output_shapes(spec: Spec) -> dict[str, tuple[int, ...]]:
     to solve); DO: the final pose and its cost."""
     if spec.mode == "do":
         return DO_OUTPUT_SHAPES
-    if spec.solver == CLIENT:
-        return FIXED_OUTPUT_SHAPES if spec.arith == "fixed" else NORMAL_OUTPUT_SHAPES
-    return OUTPUT_SHAPES
+    if integer_outputs(spec):
+        return FIXED_OUTPUT_SHAPES
+    return NORMAL_OUTPUT_SHAPES if spec.solver == CLIENT else OUTPUT_SHAPES
 
 
 def program(spec: Spec, inputs: dict[str, F]) -> dict[str, F]:
