@@ -1,8 +1,10 @@
 """End-to-end pace of secure invocations (``snail-bench service``).
 
 What a user waits for: the wall time of one secure run of a localization circuit, client
-to both servers and back over TLS, plus the bytes on each link. Inputs are fresh random
-bits: garbling does the same work whatever the data. The first run of each circuit is
+to both servers and back over TLS, plus the bytes on each link. Inputs are random bits:
+garbling does the same work whatever the data. As in a localization, the runs share a
+random frame (the inputs but the pose), whose labels go ahead with each prepared session,
+and each run has a fresh random pose. The first run of each circuit is
 reported apart (``first_s``), since a freshly started daemon also loads the circuit then.
 With the embedded daemons the servers' peak RSS is read from /proc (Linux).
 
@@ -24,9 +26,11 @@ import numpy as np
 
 from snail_client.embedded import connected
 from snail_client.progress import bar
-from snail_client.secure import AsyncSecureRunner, Invocation, SecureRunner
+from snail_client.secure import AsyncSecureRunner, FixedInputs, Invocation, SecureRunner
 from snail_common.circuit import registry
+from snail_common.circuit.ir import Interface
 from snail_common.gc.stream import DEFAULT_SCHEME
+from snail_common.loc.backends import frame_wires
 from snail_common.pnp.spec import Spec
 
 
@@ -61,12 +65,13 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
 def _measure(runner: SecureRunner, spec: Spec, repeat: int) -> dict:
     iface = registry.interface(spec.registry_id)
     rng = np.random.default_rng(secrets.randbits(128))
+    fixed = _frame(iface, rng)
 
     def once() -> Invocation:
-        return runner.invoke(spec.registry_id, rng.integers(0, 2, iface.n_inputs).astype(bool))
+        return runner.invoke(spec.registry_id, _pose_bits(fixed, rng))
 
     first = once()
-    runner.expect(spec.registry_id, repeat)  # garble ahead, as a padded frame does
+    runner.expect(spec.registry_id, repeat, fixed)  # garble ahead, as a padded frame does
     warm = [once() for _ in range(repeat)]
     walls = [run.wall_s for run in warm]
     # what the network and the protocol add to the evaluator's own work (client round
@@ -91,14 +96,15 @@ def _fleet(runner: SecureRunner, spec: Spec, repeat: int, clients: int) -> dict:
 
         async def client() -> float:
             rng = np.random.default_rng(secrets.randbits(128))
+            fixed = _frame(iface, rng)
             async with AsyncSecureRunner(garbler, evaluator, tls_dir,
                                          scheme=runner.scheme) as r:
                 def bits() -> np.ndarray:
-                    return rng.integers(0, 2, iface.n_inputs).astype(bool)
+                    return _pose_bits(fixed, rng)
 
                 await r.invoke(spec.registry_id, bits())
                 await started.wait()
-                r.expect(spec.registry_id, repeat)
+                r.expect(spec.registry_id, repeat, fixed)
                 walls = [(await r.invoke(spec.registry_id, bits())).wall_s
                          for _ in range(repeat)]
                 return statistics.median(walls)
@@ -116,6 +122,19 @@ def _fleet(runner: SecureRunner, spec: Spec, repeat: int, clients: int) -> dict:
     elapsed, medians = asyncio.run(fleet())
     return {"clients": clients, "throughput_inv_per_s": round(clients * repeat / elapsed, 2),
             "client_median_s": [round(m, 4) for m in medians]}
+
+
+def _frame(iface: Interface, rng: np.random.Generator) -> FixedInputs:
+    """A random frame: the bits a localization's invocations share (all but the pose)."""
+    mask = frame_wires(iface)
+    return FixedInputs(mask, rng.integers(0, 2, iface.n_inputs).astype(bool) & mask)
+
+
+def _pose_bits(frame: FixedInputs, rng: np.random.Generator) -> np.ndarray:
+    """One invocation's input bits: the frame's, and a random pose."""
+    bits = rng.integers(0, 2, frame.mask.size).astype(bool)
+    bits[frame.mask] = frame.bits[frame.mask]
+    return bits
 
 
 def _peak_rss_mb(pid: int) -> float | None:

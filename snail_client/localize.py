@@ -16,7 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from snail_common.gc.stream import DEFAULT_SCHEME
-from snail_common.loc.backends import Backend, CircuitBackend, Float64Backend, interface
+from snail_common.loc.backends import (
+    Backend,
+    CircuitBackend,
+    Float64Backend,
+    Values,
+    interface,
+    shared_bits,
+)
 from snail_common.loc.pipeline import Localized
 from snail_common.loc.pipeline import Options as PipelineOptions
 from snail_common.loc.pipeline import localize as run_pipeline
@@ -27,7 +34,7 @@ from snail_common.pnp.spec import Spec
 
 from .embedded import check_addresses, connected
 from .links import DEFAULT_LINK_TIMEOUT
-from .secure import DEFAULT_BUSY_WAIT, LINKS, SecureRunner
+from .secure import DEFAULT_BUSY_WAIT, LINKS, FixedInputs, SecureRunner
 
 BACKENDS = ("garbled", "cleartext", "float64")
 RESULT_FORMAT = "snail-result/1"
@@ -61,6 +68,7 @@ class GarbledBackend(CircuitBackend):
         super().__init__(self._secure_run, "garbled")
         self.secure = runner
         self.on_invocation: Callable[[], object] | None = None  # e.g. a progress bar
+        self._fixed: dict[str, FixedInputs | None] = {}  # per circuit, see expect
 
     def _secure_run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
         out = self.secure.run(circuit_id, bits)
@@ -68,19 +76,26 @@ class GarbledBackend(CircuitBackend):
             self.on_invocation()
         return out
 
-    def expect(self, spec: Spec, count: int) -> None:
+    def expect(self, spec: Spec, count: int, frame: Values | None = None) -> None:
         """Garble ahead: the servers start on the frame's invocations before the client
-        has their inputs (a padded frame makes at least ``count``)."""
-        self.secure.expect(spec.registry_id, count)
+        has their inputs (a padded frame makes at least ``count``), and the evaluator gets
+        the labels of the ``frame``'s inputs with each session."""
+        fixed = None if frame is None else FixedInputs(*shared_bits(interface(spec), frame))
+        self._fixed[spec.registry_id] = fixed
+        self.secure.expect(spec.registry_id, count, fixed)
 
     def pad(self, spec: Spec, target: int) -> None:
         """Runs on fresh random input bits until ``target`` invocations were made: the
-        servers cannot tell them from real ones."""
+        servers cannot tell them from real ones (the frame's inputs stay, so their labels
+        went ahead as for a real run; the random pose makes the outputs noise)."""
         n_inputs = interface(spec).n_inputs
+        fixed = self._fixed.get(spec.registry_id)
         while self.invocations < target:
-            noise = np.frombuffer(os.urandom(n_inputs), np.uint8) & 1
+            noise = (np.frombuffer(os.urandom(n_inputs), np.uint8) & 1).astype(bool)
+            if fixed is not None:
+                noise[fixed.mask] = fixed.bits[fixed.mask]
             self.invocations += 1
-            self._secure_run(spec.registry_id, noise.astype(bool))
+            self._secure_run(spec.registry_id, noise)
 
     def traffic(self) -> dict[str, int]:
         return dict(self.secure.totals)

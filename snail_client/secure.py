@@ -16,7 +16,12 @@ decodes: a label that is neither L0 nor L0 ^ delta means tampering (ServiceError
 A caller that knows how many invocations of a circuit are coming (``expect``: a padded
 frame makes at least ``--min-invocations``) lets the runner keep up to ``ahead``
 sessions prepared, so the next one is garbled while the current one is evaluated. A
-prepared session is used once or cancelled (at ``close``), never reused.
+prepared session is used once or cancelled (at ``close``), never reused. The caller may
+also name the input bits every coming invocation shares (a frame's image and map points;
+only the pose changes): their labels go to the evaluator when the session is prepared,
+so an invocation sends only the rest. That keeps its round trip's bytes small: on a
+delayed link, TCP paces or windows a 30 kB burst over more than one trip. A session
+whose shared bits turn out different is cancelled, never given a second label per wire.
 
 Both connections are multiplexed by sid, so invocations may run concurrently. Any
 failure (an ``error`` from a server, a lost connection, the timeout) raises ServiceError
@@ -39,7 +44,7 @@ import numpy as np
 
 from snail_common import families
 from snail_common.circuit import registry
-from snail_common.circuit.ir import Interface
+from snail_common.circuit.ir import FIRST_INPUT, Interface
 from snail_common.gc import (
     IntegrityError,
     active_input_labels,
@@ -49,7 +54,7 @@ from snail_common.gc import (
 )
 from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net import messages, tls
-from snail_common.net.chunks import write_labels
+from snail_common.net.chunks import runs, write_labels
 from snail_common.net.conn import connect, new_event_loop, parse_addr
 from snail_common.net.errors import (
     BUSY,
@@ -73,14 +78,16 @@ DEFAULT_AHEAD = 1  # sessions garbled ahead of need, when the caller says more a
 
 @dataclass
 class Invocation:
-    """One secure run: decoded outputs, bytes per link, wall time, server timings, and
-    how many table bytes reached the evaluator before this run's inputs (garble-ahead)."""
+    """One secure run: decoded outputs, bytes per link, wall time, server timings, how
+    many table bytes reached the evaluator before this run's inputs (garble-ahead), and
+    the input-label bytes sent when it was invoked (the rest went ahead: FixedInputs)."""
 
     outputs: np.ndarray
     traffic: dict[str, int]
     wall_s: float
     timing: dict[str, float] = field(default_factory=dict)
     garbled_ahead: int = 0
+    labels_on_call: int = 0
 
 
 @dataclass(eq=False)
@@ -100,6 +107,10 @@ class _Prepared:
     sent_e: int
     frame: bytes | None = None  # the map owner's frame handle, for its circuits
     owner_bits: int = 0  # input wires (the last ones) whose labels the map owner gives
+    fixed: FixedInputs | None = None  # input bits whose labels were sent when prepared
+    # the client's label slots (two constants, one per input wire but the map owner's)
+    # still to send when invoked: those not sent with ``fixed``
+    todo: np.ndarray = field(default_factory=lambda: np.ones(0, bool))
 
     @property
     def usable(self) -> bool:
@@ -108,6 +119,29 @@ class _Prepared:
 
 
 Address = str | tuple[str, int]
+
+
+@dataclass(frozen=True, eq=False)
+class FixedInputs:
+    """Input bits that every coming invocation of a circuit shares: ``mask`` says which
+    wires, ``bits`` their values (both bool, one per input wire)."""
+
+    mask: np.ndarray
+    bits: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.mask.dtype != np.bool_ or self.bits.dtype != np.bool_ \
+                or self.mask.shape != self.bits.shape or self.mask.ndim != 1:
+            raise ValueError("fixed inputs: mask and bits must be bool vectors of one length")
+
+    @staticmethod
+    def same(a: FixedInputs | None, b: FixedInputs | None) -> bool:
+        return a is b or (a is not None and b is not None and np.array_equal(a.mask, b.mask)
+                          and np.array_equal(a.bits, b.bits))
+
+    def matches(self, bits: np.ndarray) -> bool:
+        return bits.shape == self.bits.shape and np.array_equal(bits[self.mask],
+                                                                 self.bits[self.mask])
 
 
 def _addr(value: Address, name: str) -> tuple[str, int]:
@@ -149,6 +183,7 @@ class AsyncSecureRunner:
         self._lock = asyncio.Lock()
         self._prepared: dict[str, deque[_Prepared]] = {}
         self._expected: dict[str, int] = {}
+        self._fixed: dict[str, FixedInputs] = {}
         self._filling: set[asyncio.Task] = set()
         self.frame: tuple[bytes, str] | None = None  # see use_frame
 
@@ -180,9 +215,18 @@ class AsyncSecureRunner:
                 raise link
         return links[0], links[1]
 
-    def expect(self, circuit_id: str, count: int) -> None:
+    def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
         """At least ``count`` invocations of ``circuit_id`` are coming: keep up to
-        ``ahead`` of them prepared (garbled) before they are needed."""
+        ``ahead`` of them prepared (garbled) before they are needed, with the labels of
+        the ``fixed`` input bits they share already at the evaluator."""
+        if fixed is None:
+            self._fixed.pop(circuit_id, None)
+        else:
+            self._fixed[circuit_id] = fixed
+        queue = self._prepared.get(circuit_id, deque())
+        for session in [x for x in queue if not FixedInputs.same(x.fixed, fixed)]:
+            queue.remove(session)  # prepared for other shared bits: of no use now
+            self._cancel(session)
         self._expected[circuit_id] = max(count, 0)
         self._fill(circuit_id)
 
@@ -219,20 +263,20 @@ class AsyncSecureRunner:
 
     async def _invoke_once(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
         t0 = time.perf_counter()
-        session = (self._take(circuit_id) or await self._in_flight(circuit_id)
-                   or await self._prepare(circuit_id))
-        iface, sid = session.iface, session.sid
         bits = np.asarray(input_bits)
+        session = (self._take(circuit_id, bits) or await self._in_flight(circuit_id, bits)
+                   or await self._prepare(circuit_id, fixed=False))
+        iface, sid = session.iface, session.sid
         if bits.dtype != np.bool_ or bits.shape != (iface.n_inputs,):
             self._cancel(session)
             raise ValueError(f"input_bits must be a bool vector of {iface.n_inputs} bits "
                              f"for {circuit_id}, got {bits.dtype} {bits.shape}")
         self._expected[circuit_id] = max(self._expected.get(circuit_id, 0) - 1, 0)
         labels = active_input_labels(session.seed, session.delta, bits)
-        if session.owner_bits:  # those wires are the map owner's: never a label from here
-            labels = labels[:len(labels) - session.owner_bits]
         try:
-            sent_e = write_labels(session.evaluator.conn, "input_labels", sid, labels)
+            sent_e = sum(write_labels(session.evaluator.conn, "input_labels", sid,
+                                      labels[a:b], a, len(session.todo))
+                         for a, b in runs(session.todo))
             self._fill(circuit_id)  # the next sessions garble while this one evaluates
             await session.evaluator.conn.drain()
             results = await asyncio.wait_for(self._collect(session), self.timeout)
@@ -262,26 +306,28 @@ class AsyncSecureRunner:
         timing = {f"garbler_{k}": v for k, v in g_stats["timing"].items()}
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
         ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
-        self.last = Invocation(outputs, traffic, wall, timing, ahead)
+        self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e)
         self.invocations += 1
         for k, v in traffic.items():
             self.totals[k] = self.totals.get(k, 0) + v
         return self.last
 
-    async def _prepare(self, circuit_id: str) -> _Prepared:
-        """Ask for a session's garbling now, with fresh secrets. A link that died while
-        this client was idle (a restarted server: its end of the connection is found
-        closed only when written to) is reconnected once, with new secrets."""
+    async def _prepare(self, circuit_id: str, fixed: bool = True) -> _Prepared:
+        """Ask for a session's garbling now, with fresh secrets (and, ``fixed``, send the
+        labels of the inputs the coming invocations share). A link that died while this
+        client was idle (a restarted server: its end of the connection is found closed
+        only when written to) is reconnected once, with new secrets."""
+        shared = self._fixed.get(circuit_id) if fixed else None
         try:
-            return await self._prepare_once(circuit_id)
+            return await self._prepare_once(circuit_id, shared)
         except ConnectionClosed:
             pass
         try:
-            return await self._prepare_once(circuit_id)
+            return await self._prepare_once(circuit_id, shared)
         except ConnectionClosed as exc:
             raise ServiceError(f"{circuit_id}: {exc}") from None
 
-    async def _prepare_once(self, circuit_id: str) -> _Prepared:
+    async def _prepare_once(self, circuit_id: str, fixed: FixedInputs | None) -> _Prepared:
         loop = asyncio.get_running_loop()
         try:
             registry.check_id(circuit_id)
@@ -300,6 +346,13 @@ class AsyncSecureRunner:
             raise ServiceError(f"{circuit_id} takes the map owner's input: no frame was "
                                f"selected from a map owner")
         owner = {"frame": self.frame[0], "map_owner": self.frame[1]} if n_owner else {}
+        if fixed is not None and fixed.mask.shape != (iface.n_inputs,):
+            raise ServiceError(f"{circuit_id}: the fixed inputs cover {fixed.mask.size} "
+                               f"wires, the circuit has {iface.n_inputs}")
+        todo = np.ones(FIRST_INPUT + iface.n_inputs - n_owner, bool)
+        if fixed is not None:
+            todo[:FIRST_INPUT] = False  # the constants' labels never change either
+            todo[FIRST_INPUT:] = ~fixed.mask[:iface.n_inputs - n_owner]
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
@@ -308,6 +361,10 @@ class AsyncSecureRunner:
             sent_e = evaluator.conn.write(messages.make(
                 "session_start", sid=sid, circuit=circuit_id, hash=chash,
                 scheme=self.scheme))
+            if fixed is not None:
+                labels = active_input_labels(seed, delta, fixed.bits)
+                sent_e += sum(write_labels(evaluator.conn, "input_labels", sid, labels[a:b],
+                                           a, todo.size) for a, b in runs(~todo))
             sent_g = garbler.conn.write(messages.make(
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
                 delta=labels_to_bytes(delta), key=key, scheme=self.scheme, **owner))
@@ -317,27 +374,29 @@ class AsyncSecureRunner:
             evaluator.cancel(sid)
             raise
         return _Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
-                         sent_g, sent_e, owner.get("frame"), n_owner)
+                         sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo)
 
-    def _take(self, circuit_id: str) -> _Prepared | None:
-        """A prepared session of ``circuit_id`` the servers still hold, if any."""
+    def _take(self, circuit_id: str, bits: np.ndarray) -> _Prepared | None:
+        """A prepared session of ``circuit_id`` the servers still hold and that fits
+        ``bits`` (its fixed inputs' labels were sent for these values), if any."""
         queue = self._prepared.get(circuit_id)
         while queue:
             session = queue.popleft()
             if session.usable and (not session.owner_bits
-                                   or session.frame == (self.frame or (None,))[0]):
+                                   or session.frame == (self.frame or (None,))[0]) \
+                    and (session.fixed is None or session.fixed.matches(bits)):
                 return session
-            self._cancel(session)  # expired or its link broke: garble anew
+            self._cancel(session)  # expired, its link broke or other inputs: garble anew
         return None
 
-    async def _in_flight(self, circuit_id: str) -> _Prepared | None:
+    async def _in_flight(self, circuit_id: str, bits: np.ndarray) -> _Prepared | None:
         """Wait for a session of ``circuit_id`` already being prepared, rather than ask
         the garbler for yet another one (it would garble it behind those)."""
         tasks = [t for t in self._filling if t.get_name() == circuit_id]
         if not tasks:
             return None
         await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-        return self._take(circuit_id)
+        return self._take(circuit_id, bits)
 
     def _fill(self, circuit_id: str) -> None:
         """Prepare sessions in the background up to min(ahead, expected invocations)."""
@@ -427,11 +486,11 @@ class SecureRunner:
         """Map-owner circuits take this frame's map-owner inputs (see the async runner)."""
         self._runner.use_frame(handle, map_owner)
 
-    def expect(self, circuit_id: str, count: int) -> None:
-        """At least ``count`` invocations of ``circuit_id`` are coming (see the async
-        runner); their garbling starts now."""
+    def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
+        """At least ``count`` invocations of ``circuit_id`` are coming, sharing the
+        ``fixed`` input bits (see the async runner); their garbling starts now."""
         async def announce() -> None:
-            self._runner.expect(circuit_id, count)
+            self._runner.expect(circuit_id, count, fixed)
             await asyncio.sleep(0)
 
         self._complete(announce())

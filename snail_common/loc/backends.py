@@ -24,7 +24,7 @@ from snail_common.pnp import family
 from snail_common.pnp.do import do_reference, normal_equations64, pinv_solve64
 from snail_common.pnp.normal import UPPER
 from snail_common.pnp.normal_fixed import decode, weights_fixed
-from snail_common.pnp.sil import CLIENT
+from snail_common.pnp.sil import CLIENT, ITERATION_INPUTS
 from snail_common.pnp.spec import Spec, integer_outputs, run_mirror
 
 from .types import Normalized, Pose
@@ -64,6 +64,27 @@ def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> Value
     return values
 
 
+def frame_inputs(values: Values) -> Values:
+    """The inputs every invocation of a frame shares: all but the pose and damping."""
+    return {k: v for k, v in values.items() if k not in ITERATION_INPUTS}
+
+
+def frame_wires(iface: Interface) -> np.ndarray:
+    """The input wires of a frame's inputs (bool mask): those ``frame_inputs`` keeps."""
+    return np.repeat([g.name not in ITERATION_INPUTS for g in iface.inputs],
+                     [g.size for g in iface.inputs])
+
+
+def shared_bits(iface: Interface, frame: Values) -> tuple[np.ndarray, np.ndarray]:
+    """Which input wires ``frame`` covers (bool mask) and their bits (zeros elsewhere)."""
+    placeholders = {g.name: np.zeros(g.shape) for g in iface.inputs
+                    if g.name not in frame}
+    bits = encode_inputs(iface, {**placeholders, **frame})[0]
+    mask = np.repeat([g.name in frame for g in iface.inputs],
+                     [g.size for g in iface.inputs])
+    return mask, bits & mask
+
+
 def circuit_outputs(spec: Spec, values: Values, out: Values) -> Values:
     """A circuit's outputs as the float circuit names them: fixed-point sums decoded with
     the weights they were computed with."""
@@ -89,9 +110,9 @@ class Backend:
     def prepare(self, spec: Spec) -> None:
         """Build or load what running ``spec`` needs, before any invocation is timed."""
 
-    def expect(self, spec: Spec, count: int) -> None:
-        """At least ``count`` invocations of ``spec`` are coming (a backend that can do
-        work ahead of its inputs may start now)."""
+    def expect(self, spec: Spec, count: int, frame: Values | None = None) -> None:
+        """At least ``count`` invocations of ``spec`` are coming, all with the inputs in
+        ``frame`` (a backend that can do work ahead of its inputs may start now)."""
 
     def pad(self, spec: Spec, target: int) -> None:
         """Dummy invocations until ``target`` have been made, where someone watches how

@@ -18,7 +18,7 @@ import numpy as np
 
 from snail_common.pnp.spec import MASKED, OWNER_PAD, Spec
 
-from .backends import Backend, Values
+from .backends import Backend, Values, frame_inputs, sil_values
 from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
 from .mapfile import Frame, MapPoints
 from .pipeline import Localized, Options, solve_sil
@@ -119,8 +119,10 @@ class SharedWorld:
     def prepare(self, spec: Spec) -> None:
         self.inner.prepare(spec)
 
-    def expect(self, spec: Spec, count: int) -> None:
-        self.inner.expect(spec, count)
+    def expect(self, spec: Spec, count: int, frame: Values | None = None) -> None:
+        if frame is not None:  # the map points as run() passes them; the pad is not ours
+            frame = {k: v for k, v in frame.items() if k != "world"} | {MASKED: self.masked}
+        self.inner.expect(spec, count, frame)
 
     def pad(self, spec: Spec, target: int) -> None:
         self.inner.pad(spec, target)
@@ -154,10 +156,11 @@ def _localize(frame: Frame, published: PublishedMap, nrm: Normalized, spec: Spec
     start = time.perf_counter()
     similarity = Similarity(published.center, published.scale, frame.n)
     backend.prepare(spec)
-    backend.expect(spec, options.min_invocations)
-    first = backend.invocations
     pose0 = similarity.to_normalized(pose_from_rvec_tvec(frame.initial_pose.rvec,
                                                          frame.initial_pose.tvec))
+    backend.expect(spec, options.min_invocations,
+                   frame_inputs(sil_values(spec, nrm, pose0, 0.0)))
+    first = backend.invocations
     pose, cost, iterations, converged, walls = solve_sil(spec, options, backend, nrm, pose0)
     backend.pad(spec, first + options.min_invocations)
     rvec, tvec = pose_to_rvec_tvec(similarity.to_original(pose))

@@ -29,7 +29,7 @@ from snail_common.pnp.normal import UPPER
 from snail_common.pnp.sil import ARITHS, CLIENT
 from snail_common.pnp.spec import DO_ITERATIONS, DO_MAX_ITERATIONS, Spec
 
-from .backends import Backend, sil_values
+from .backends import Backend, frame_inputs, sil_values
 from .driver import COST_TOL, LAMBDA_START, run
 from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
 from .preprocess import normalize, pad
@@ -136,9 +136,13 @@ def localize(problem: Problem, options: Options, backend: Backend,
     spec = options.spec(problem.n)
     nrm = pad(nrm, spec.points) if spec.points != nrm.n else nrm
     backend.prepare(spec)  # build or load now, not inside the first timed call
-    backend.expect(spec, options.min_invocations if options.mode == "sil" else 1)
-    first = backend.invocations
     pose0 = frame.to_normalized(pose_from_rvec_tvec(pose_vectors.rvec, pose_vectors.tvec))
+    if options.mode == "sil":
+        backend.expect(spec, options.min_invocations,
+                       frame_inputs(sil_values(spec, nrm, pose0, 0.0)))
+    else:
+        backend.expect(spec, 1)
+    first = backend.invocations
     solve = _solve_do if options.mode == "do" else solve_sil
     pose, cost, iterations, converged, walls = solve(spec, options, backend, nrm, pose0)
     if options.mode == "sil":

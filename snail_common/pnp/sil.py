@@ -44,6 +44,8 @@ def input_shapes(algorithm: str, n: int, solver: str = "ldlt",
     return shapes
 
 
+# the inputs that change between a frame's invocations; the rest are the frame's
+ITERATION_INPUTS = ("R", "t", "lam")
 # (dtype, bits) of the inputs that are not float32, and the fixed-point circuit's outputs
 INPUT_TYPES = {"wfix": ("uint16", W_W)}
 FIXED_OUTPUT_TYPES = {"hess": "int64", "grad": "int64", "cost": "int64", "ek": "uint8",

@@ -1,0 +1,101 @@
+"""Links with a client at one end ask for cubic congestion control (conn.py module doc:
+BBR paces a small burst after idle over a good part of a round trip); the garbler's
+table stream to the evaluator keeps the kernel's choice."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import socket
+import subprocess
+
+import numpy as np
+import pytest
+
+from snail_client.embedded import embedded_services
+from snail_client.secure import AsyncSecureRunner
+from snail_common.circuit import registry
+from snail_common.net.conn import BURST_CONGESTION, Connection, new_event_loop, parse_addr
+
+CIRCUIT = "ops/fmul-x4"
+
+
+def _congestion(sock) -> bytes:
+    return sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, 16).rstrip(b"\0")
+
+
+def _kernel_default() -> bytes:
+    with open("/proc/sys/net/ipv4/tcp_congestion_control", "rb") as f:
+        return f.read().strip()
+
+
+pytestmark = pytest.mark.skipif(not hasattr(socket, "TCP_CONGESTION"),
+                                reason="no TCP_CONGESTION socket option on this platform")
+
+
+def test_prefer_bursts_sets_cubic_on_the_socket():
+    loop = new_event_loop()
+    listener = socket.create_server(("127.0.0.1", 0))
+    try:
+        _, conn = loop.run_until_complete(loop.create_connection(
+            Connection, "127.0.0.1", listener.getsockname()[1]))
+        sock = conn.transport.get_extra_info("socket")
+        with socket.socket() as probe:
+            if _congestion(probe) == BURST_CONGESTION:
+                probe.setsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, b"reno")
+                assert _congestion(probe) == b"reno"  # a change can be seen at all
+        conn.prefer_bursts()
+        assert _congestion(sock) == BURST_CONGESTION
+        conn.transport.close()
+        loop.run_until_complete(asyncio.sleep(0.01))
+    finally:
+        listener.close()
+        loop.close()
+
+
+@pytest.fixture(scope="module")
+def services(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SNAIL_CACHE_DIR", str(cache))
+        with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)}) as svc:
+            yield svc
+
+
+def _ss_congestion(port: int) -> dict[tuple[int, int], str]:
+    """(local port, peer port) -> congestion control of every established TCP socket
+    with ``port`` at one end, as `ss -ti` reports it."""
+    out = subprocess.run(["ss", "-tinH", "state", "established"], capture_output=True,
+                         text=True, check=True).stdout.splitlines()
+    found = {}
+    for addresses, details in zip(out[::2], out[1::2], strict=False):
+        fields = addresses.split()
+        local, peer = (int(x.rsplit(":", 1)[1]) for x in fields[-2:])
+        if port in (local, peer):
+            names = [w for w in details.split() if w in ("cubic", "bbr", "reno")]
+            found[local, peer] = names[0] if names else "?"
+    return found
+
+
+def test_a_clients_links_are_cubic_at_both_ends_and_the_table_stream_is_not(services):
+    if shutil.which("ss") is None:
+        pytest.skip("no `ss` (iproute2) to read the servers' sockets")
+    n = registry.compiled(CIRCUIT)[1].n_inputs
+
+    async def scenario():
+        async with AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
+                                     services.tls_dir, timeout=60) as r:
+            await r.invoke(CIRCUIT, np.zeros(n, bool))
+            links = {role: r._links[role].conn.transport.get_extra_info("socket")
+                     for role in ("garbler", "evaluator")}
+            ports = {role: s.getsockname()[1] for role, s in links.items()}
+            mine = {role: _congestion(s) for role, s in links.items()}
+            return ports, mine, _ss_congestion(parse_addr(services.evaluator_addr)[1])
+
+    ports, mine, seen = asyncio.run(scenario())
+    assert mine == {"garbler": BURST_CONGESTION, "evaluator": BURST_CONGESTION}
+    evaluator_port = parse_addr(services.evaluator_addr)[1]
+    assert seen[evaluator_port, ports["evaluator"]] == BURST_CONGESTION.decode()  # its end
+    pool = [cc for (local, peer), cc in seen.items()
+            if local == evaluator_port and peer not in ports.values()]
+    assert pool and all(cc == _kernel_default().decode() for cc in pool)  # the garbler's
