@@ -1,6 +1,7 @@
-"""Links with a client at one end ask for cubic congestion control (conn.py module doc:
-BBR paces a small burst after idle over a good part of a round trip); the garbler's
-table stream to the evaluator keeps the kernel's choice."""
+"""Links with a client at one end use cubic congestion control from their first packet
+(conn.py module doc: BBR paces a small burst after idle over a good part of a round
+trip, and a socket that started under BBR stays paced); the garbler's table stream to
+the evaluator keeps the kernel's choice."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import pytest
 from snail_client.embedded import embedded_services
 from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import registry
-from snail_common.net.conn import BURST_CONGESTION, Connection, new_event_loop, parse_addr
+from snail_common.net.conn import BURST_CONGESTION, parse_addr, prefer_bursts
 
 CIRCUIT = "ops/fmul-x4"
 
@@ -34,23 +35,12 @@ pytestmark = pytest.mark.skipif(not hasattr(socket, "TCP_CONGESTION"),
 
 
 def test_prefer_bursts_sets_cubic_on_the_socket():
-    loop = new_event_loop()
-    listener = socket.create_server(("127.0.0.1", 0))
-    try:
-        _, conn = loop.run_until_complete(loop.create_connection(
-            Connection, "127.0.0.1", listener.getsockname()[1]))
-        sock = conn.transport.get_extra_info("socket")
-        with socket.socket() as probe:
-            if _congestion(probe) == BURST_CONGESTION:
-                probe.setsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, b"reno")
-                assert _congestion(probe) == b"reno"  # a change can be seen at all
-        conn.prefer_bursts()
-        assert _congestion(sock) == BURST_CONGESTION
-        conn.transport.close()
-        loop.run_until_complete(asyncio.sleep(0.01))
-    finally:
-        listener.close()
-        loop.close()
+    with socket.socket() as probe:
+        if _congestion(probe) == BURST_CONGESTION:
+            probe.setsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, b"reno")
+            assert _congestion(probe) == b"reno"  # a change can be seen at all
+        prefer_bursts(probe)
+        assert _congestion(probe) == BURST_CONGESTION
 
 
 @pytest.fixture(scope="module")
@@ -93,9 +83,10 @@ def test_a_clients_links_are_cubic_at_both_ends_and_the_table_stream_is_not(serv
             return ports, mine, _ss_congestion(parse_addr(services.evaluator_addr)[1])
 
     ports, mine, seen = asyncio.run(scenario())
+    cubic, kernel = BURST_CONGESTION.decode(), _kernel_default().decode()
     assert mine == {"garbler": BURST_CONGESTION, "evaluator": BURST_CONGESTION}
     evaluator_port = parse_addr(services.evaluator_addr)[1]
-    assert seen[evaluator_port, ports["evaluator"]] == BURST_CONGESTION.decode()  # its end
-    pool = [cc for (local, peer), cc in seen.items()
-            if local == evaluator_port and peer not in ports.values()]
-    assert pool and all(cc == _kernel_default().decode() for cc in pool)  # the garbler's
+    assert seen[evaluator_port, ports["evaluator"]] == cubic  # the evaluator's end
+    garbler_ends = [cc for (local, peer), cc in seen.items()
+                    if peer == evaluator_port and local not in ports.values()]
+    assert garbler_ends and all(cc == kernel for cc in garbler_ends)  # the table stream

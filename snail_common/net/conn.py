@@ -14,9 +14,13 @@ Opening: the connecting side sends ``hello``, the server answers ``capabilities`
 A link with a client or a map owner at one end carries one small burst per invocation
 (labels: a few to tens of kB) after an idle spell, and a round trip waits on it. BBR,
 where it is the kernel's default, paces such a burst at the rate it estimated from the
-earlier small bursts: ~10 ms for 11 kB at a 40 ms round trip. Those links therefore ask
-for cubic, which sends a burst that fits the initial window at once (the kernel's choice
-stays where cubic is not allowed). The garbler's table stream keeps the kernel's choice.
+earlier small bursts: ~10 ms for 11 kB at a 40 ms round trip. Those links therefore use
+cubic, which sends a burst that fits the initial window at once (the kernel's choice
+stays where cubic is not allowed). It is set before the connection exists: a socket that
+started under BBR stays paced after a switch. Servers set it on their listening sockets
+(their peers' bursts are small; the evaluator's end of the garbler's table stream only
+acknowledges), clients and map owners on the sockets they connect; the garbler's
+connections to the evaluator, which carry the table stream, keep the kernel's choice.
 """
 
 from __future__ import annotations
@@ -207,13 +211,6 @@ class Connection(asyncio.BufferedProtocol):
         except OSError:  # reset, or the descriptor is already gone
             return True
 
-    def prefer_bursts(self) -> None:
-        """Cubic congestion control on this link (module doc), if the kernel allows it."""
-        sock = self.transport.get_extra_info("socket") if self.transport else None
-        if sock is not None and hasattr(socket, "TCP_CONGESTION"):
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, BURST_CONGESTION)
-
     def _end(self, reason: Exception) -> None:
         """No more input: queue ``reason`` for the consumer (once)."""
         if not self._ended:
@@ -305,17 +302,14 @@ async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_r
     """Open a TLS connection as ``role`` to a server that must be ``expect_role``;
     returns it after the hello/capabilities exchange."""
     where = f"the {expect_role} at {format_addr(host, port)}"
-    loop = asyncio.get_running_loop()
     try:
-        _, conn = await asyncio.wait_for(loop.create_connection(
-            lambda: Connection(max_frame), host, port, ssl=ctx, server_hostname=host,
-            ssl_handshake_timeout=timeout), timeout)
+        _, conn = await asyncio.wait_for(_open(
+            lambda: Connection(max_frame), host, port, ctx, timeout,
+            bursts=role in BURST_ROLES or expect_role in BURST_ROLES), timeout)
     except asyncio.TimeoutError:
         raise ConnectionClosed(f"connecting to {where} timed out") from None
     except (OSError, ssl.SSLError) as exc:
         raise ConnectionClosed(f"cannot connect to {where}: {exc}") from None
-    if role in BURST_ROLES or expect_role in BURST_ROLES:
-        conn.prefer_bursts()
     if conn.peer_role != expect_role:
         conn.abort()
         got = f"the {conn.peer_role}'s" if conn.peer_role else "no snail"
@@ -328,6 +322,42 @@ async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_r
         conn.abort()
         raise ConnectionClosed(f"opening a session with {where} failed: {exc}") from None
     return conn
+
+
+async def _open(factory: Callable[[], Connection], host: str, port: int,
+                ctx: ssl.SSLContext, timeout: float, bursts: bool) -> tuple[Any, Connection]:
+    """create_connection, on a socket set up for small bursts before it connects when
+    ``bursts`` (module doc)."""
+    loop = asyncio.get_running_loop()
+    if not bursts:
+        return await loop.create_connection(factory, host, port, ssl=ctx, server_hostname=host,
+                                            ssl_handshake_timeout=timeout)
+    failure: OSError = OSError(f"no address for {host}")
+    for family, kind, proto, _, addr in await loop.getaddrinfo(host, port,
+                                                               type=socket.SOCK_STREAM):
+        sock = socket.socket(family, kind, proto)
+        try:
+            sock.setblocking(False)
+            prefer_bursts(sock)
+            await loop.sock_connect(sock, addr)
+        except OSError as exc:
+            sock.close()
+            failure = exc
+            continue
+        except BaseException:
+            sock.close()
+            raise
+        return await loop.create_connection(factory, sock=sock, ssl=ctx, server_hostname=host,
+                                            ssl_handshake_timeout=timeout)
+    raise failure
+
+
+def prefer_bursts(sock: socket.socket) -> None:
+    """Cubic congestion control for a link of small bursts (module doc), where the kernel
+    allows it; the kernel's choice otherwise."""
+    if hasattr(socket, "TCP_CONGESTION"):
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, BURST_CONGESTION)
 
 
 async def accept(conn: Connection, capabilities: dict[str, Any], allowed: tuple[str, ...],
@@ -344,8 +374,6 @@ async def accept(conn: Connection, capabilities: dict[str, Any], allowed: tuple[
         if conn.peer_role not in allowed:
             raise ProtocolError(FORBIDDEN, f"a {conn.peer_role} may not connect to the "
                                            f"{capabilities['role']}")
-        if conn.peer_role in BURST_ROLES or capabilities["role"] in BURST_ROLES:
-            conn.prefer_bursts()
         hello = await conn.expect("hello", timeout)
         if hello["role"] != conn.peer_role:
             raise ProtocolError(FORBIDDEN, f"hello claims role {hello['role']!r} but the "

@@ -36,7 +36,7 @@ from snail_common.circuit.plan import plan_for
 from snail_common.circuit.schedule import Schedule
 
 from . import messages
-from .conn import SOFTWARE, Connection, accept
+from .conn import SOFTWARE, Connection, accept, prefer_bursts
 from .errors import (
     BUSY,
     CIRCUIT_MISMATCH,
@@ -326,6 +326,8 @@ class Daemon:
                                frame_timeout=self.options.session_timeout),
             host, port, ssl=ctx,
             ssl_handshake_timeout=self.options.handshake_timeout)
+        for sock in server.sockets:  # accepted links inherit it (conn.py module doc)
+            prefer_bursts(sock)
         announce(self.log, "listening", host=host, port=server.sockets[0].getsockname()[1],
                  pid=os.getpid(), max_sessions=self.options.max_sessions,
                  max_and_gates=self.options.max_and_gates,
