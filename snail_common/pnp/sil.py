@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from .block_ldlt import block_ldlt_solve
 from .fixed import TC
 from .fops import F, stack
 from .ldlt import ldlt_solve
@@ -59,9 +60,11 @@ FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ek": (), "ec": 
 Solver = Callable[[F, F], F]
 
 
-def _solver(name: str) -> Solver:
+def _solver(name: str, arith: str) -> Solver:
+    """The named solver; LDL^T on the fixed-point sums is the block form (block_ldlt.py),
+    whose cubic adjugates need the bounded entries float_system gives it."""
     if name == "ldlt":
-        return ldlt_solve
+        return block_ldlt_solve if arith == "fixed" else ldlt_solve
     if name == "svd":
         return svd_solve
     raise ValueError(f"solver must be one of {SOLVERS}, got {name!r}")
@@ -102,7 +105,7 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
     with hess.be.shallow():  # the solve is one long chain: spend gates to cut depth
         if algorithm == "lm":
             hess = damped(hess, inputs["lam"])
-        step = _solver(solver)(hess, -grad)
+        step = _solver(solver, arith)(hess, -grad)
     return {"step": step if unscale is None else unscale(step), "cost": cost}
 
 
