@@ -4,8 +4,9 @@ With H = [A B; B^T C], the block factorization H = [I 0; B^T A^-1 I] [A 0; 0 S] 
 0 I], S = C - B^T A^-1 B, gives the solution of H x = g as
     x2 = S^-1 (g2 - B^T A^-1 g1),    x1 = A^-1 g1 - (A^-1 B) x2.
 Both 3x3 inverses are adjugates over determinants, so only two divisions lie on the
-dependency chain (1/det A, and det S under x2) instead of the six pivots of ldlt.py; the
-rest are products and 3-term sums that run side by side. Nothing pivots: H is a damped
+dependency chain (1/det A and 1/det S) instead of the six pivots of ldlt.py; the rest are
+products and 3-term sums that run side by side, det S x1 among them while 1/det S is
+being computed. Nothing pivots: H is a damped
 (or positive definite) normal matrix, so A and S are positive definite.
 
 The adjugates and determinants are cubic in the entries: the caller keeps the entries
@@ -87,9 +88,11 @@ def block_ldlt_solve(packed: F, rhs: F) -> F:
         off_s = len(adj_s)
         pairs = [(_sym_row(i), [off_s + 6 + k for k in range(3)]) for i in range(3)]
         pairs.append((_sym_row(0), [off_s + q for q in _sym_row(0)]))
-        z = _dots(pool, pool, pairs)            # adj(S) h (3,), det S
-        x2 = z[0:3] / z[3]
-        # x1 = A^-1 g1 - (A^-1 B) x2, row i: (u_i - P[i,0] x2_0) - (P[i,1] x2_1 + P[i,2] x2_2)
-        q = p_u[[3 * j + i for i in range(3) for j in range(3)]] * x2[[0, 1, 2] * 3]
-        x1 = (p_u[9:12] - q[0::3]) - (q[1::3] + q[2::3])
-    return concat([x1, x2])
+        z = _dots(pool, pool, pairs)            # adj(S) h = det S x2 (3,), det S
+        recip_s = 1.0 / z[3]
+        # det S x1 = det S A^-1 g1 - (A^-1 B) adj(S) h, formed while 1/det S is computed;
+        # row i: (det S u_i - P[i,0] z_0) - (P[i,1] z_1 + P[i,2] z_2)
+        q = p_u[[3 * j + i for i in range(3) for j in range(3)] + [9, 10, 11]] * \
+            z[[0, 1, 2] * 3 + [3, 3, 3]]
+        x1 = (q[9:12] - q[0:9:3]) - (q[1:9:3] + q[2:9:3])
+        return concat([x1, z[0:3]]) * recip_s

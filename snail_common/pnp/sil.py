@@ -14,8 +14,9 @@ groups (see INPUT_SHAPES).
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 
-from .block_ldlt import block_ldlt_solve
+from .block_ldlt import SOLVE_FRAC, block_ldlt_solve
 from .fixed import TC
 from .fops import F, stack
 from .ldlt import ldlt_solve
@@ -104,9 +105,16 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
                                             inputs["world"], inputs["weights"])
     with hess.be.shallow():  # the solve is one long chain: spend gates to cut depth
         if algorithm == "lm":
-            hess = damped(hess, inputs["lam"])
+            with _damping_precision(hess, arith):
+                hess = damped(hess, inputs["lam"])
         step = _solver(solver, arith)(hess, -grad)
     return {"step": step if unscale is None else unscale(step), "cost": cost}
+
+
+def _damping_precision(hess: F, arith: str) -> AbstractContextManager:
+    """The block solve reads SOLVE_FRAC bits of the damped matrix: damping in that format
+    shortens the chain and loses nothing it would read."""
+    return hess.be.narrow(SOLVE_FRAC) if arith == "fixed" else nullcontext()
 
 
 def _fixed_sums(inputs: dict[str, F]) -> tuple:
