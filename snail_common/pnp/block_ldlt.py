@@ -6,11 +6,11 @@ With H = [A B; B^T C], the block factorization H = [I 0; B^T A^-1 I] [A 0; 0 S] 
 Both 3x3 inverses are adjugates over determinants, so only two divisions lie on the
 dependency chain (1/det A and 1/det S) instead of the six pivots of ldlt.py; the rest are
 products and 3-term sums that run side by side, det S x1 among them while 1/det S is
-being computed. Nothing pivots: H is a damped
-(or positive definite) normal matrix, so A and S are positive definite.
+being computed. Nothing pivots: H is a damped (or positive definite) normal matrix, so A
+and S are positive definite.
 
 The adjugates and determinants are cubic in the entries: the caller keeps the entries
-small enough (normal_fixed.float_system: below 1, so even lambda_max damping stays far
+small enough (normal_fixed.float_system: at most 1, so even lambda_max damping stays far
 inside float32). +, - and * run at SOLVE_FRAC fraction bits: the step only steers the
 iteration (the LM loop accepts or rejects it on the float32 cost, and the converged pose
 is where J^T W r = 0, which the solve does not touch), and the sums entering the solve
@@ -18,8 +18,6 @@ carry about 13 significant bits anyway (normal_fixed.py).
 """
 
 from __future__ import annotations
-
-import numpy as np
 
 from .fops import F, concat
 from .normal import UPPER
@@ -48,7 +46,7 @@ def _dots(x: F, y: F, pairs: list[tuple[list[int], list[int]]]) -> F:
     batched multiply, two batched adds."""
     left = [i for ii, _ in pairs for i in ii]
     right = [j for _, jj in pairs for j in jj]
-    prods = x[np.array(left)] * y[np.array(right)]
+    prods = x[left] * y[right]
     return (prods[0::3] + prods[1::3]) + prods[2::3]
 
 
@@ -69,7 +67,7 @@ def block_ldlt_solve(packed: F, rhs: F) -> F:
         # adj(A) [B | g1] = det A [A^-1 B | A^-1 g1]; and det A = A[0] . adj(A)[0]
         pool = concat([adj_a, bg, a])
         off_bg, off_a = len(adj_a), len(adj_a) + len(bg)
-        pairs = [([_SYM_AT[i, k] for k in range(3)], [off_bg + q for q in col[j]])
+        pairs = [(_sym_row(i), [off_bg + q for q in col[j]])
                  for j in range(4) for i in range(3)]
         pairs.append((_sym_row(0), [off_a + q for q in _sym_row(0)]))
         m = _dots(pool, pool, pairs)            # (13,): adj(A) [B | g1] by columns, det A
