@@ -23,10 +23,11 @@ LAMS = [0.0, 1e-3, 1.0, LAMBDA_MAX]
 
 def _system(rng: np.random.Generator, lam: float, spread: float) -> tuple[np.ndarray, ...]:
     """A damped normal matrix (float64, entries at most 1 before damping, as float_system
-    gives them; column norms spread over 2^spread) and a right-hand side."""
+    gives them, the largest anywhere from 2^-20 to 1; column norms spread over 2^spread)
+    and a right-hand side."""
     jac = rng.normal(size=(12, 6)) * 2.0 ** rng.uniform(-spread, 0, 6)
     hess = jac.T @ jac
-    hess *= 0.9 / np.abs(hess).max()
+    hess *= 2.0 ** rng.uniform(-20, 0) / np.abs(hess).max()
     hess += lam * np.diag(np.diag(hess))
     return hess, rng.normal(size=6) * 2.0 ** rng.uniform(-8, 0)
 

@@ -3,11 +3,13 @@
 With H = [A B; B^T C], the block factorization H = [I 0; B^T A^-1 I] [A 0; 0 S] [I A^-1 B;
 0 I], S = C - B^T A^-1 B, gives the solution of H x = g as
     x2 = S^-1 (g2 - B^T A^-1 g1),    x1 = A^-1 g1 - (A^-1 B) x2.
-Both 3x3 inverses are adjugates over determinants, so only two divisions lie on the
-dependency chain (1/det A and 1/det S) instead of the six pivots of ldlt.py; the rest are
-products and 3-term sums that run side by side, det S x1 among them while 1/det S is
-being computed. Nothing pivots: H is a damped (or positive definite) normal matrix, so A
-and S are positive definite.
+Both 3x3 inverses are adjugates over determinants, so two divisions replace the six
+pivots of ldlt.py, and only 1/det S lies on the dependency chain; the rest are products
+and 3-term sums that run side by side. The Schur complement is formed as
+det A S = det A C - B^T adj(A) B and brought back to the size of S by det A's power of
+two (an exponent subtraction), not by 1/det A, which only A^-1 B and A^-1 g1 wait for;
+det S x1 is formed while 1/det S is computed. Nothing pivots: H is a damped (or positive
+definite) normal matrix, so A and S are positive definite.
 
 The adjugates and determinants are cubic in the entries: the caller keeps the entries
 small enough (normal_fixed.float_system: at most 1, so even lambda_max damping stays far
@@ -19,7 +21,8 @@ carry about 13 significant bits anyway (normal_fixed.py).
 
 from __future__ import annotations
 
-from .fops import F, concat
+from .fixed import fix_backend
+from .fops import F, concat, const
 from .normal import UPPER
 
 SOLVE_FRAC = 16  # fraction bits of the solve's +, - and * (module doc)
@@ -55,6 +58,14 @@ def _sym_row(i: int) -> list[int]:
     return [_SYM_AT[i, k] for k in range(3)]
 
 
+def _unit_scaled(x: F, d: F) -> F:
+    """x / 2^e for e the binary exponent of d: x / d up to a factor in [1, 2), exact and a
+    few gates, where x d^k would leave float32's range."""
+    fx = fix_backend(x)
+    one = const(x.be, 1.0)
+    return fx.scale2(x, fx.exponent_offset(fx.block_emax(one), fx.block_emax(d), 0))
+
+
 def block_ldlt_solve(packed: F, rhs: F) -> F:
     """x with H x = rhs, for H given as its UPPER-packed (21,) entries; rhs (6,)."""
     a = packed[[_AT[e] for e in _SYM]]
@@ -78,9 +89,9 @@ def block_ldlt_solve(packed: F, rhs: F) -> F:
         pairs = [(col[i], [off_m + q for q in col[k]]) for i, k in _SYM]
         pairs += [(col[i], [off_m + q for q in col[3]]) for i in range(3)]
         t = _dots(pool, pool, pairs)            # (9,)
-        scaled = concat([t, m[0:12]]) * recip   # B^T A^-1 [B | g1], A^-1 [B | g1]
-        s_h = concat([c, rhs[3:6]]) - scaled[0:9]   # S (6,), h = g2 - B^T A^-1 g1 (3,)
-        p_u = scaled[9:21]                      # A^-1 B by columns, A^-1 g1
+        # det A [S | h] = det A [C | g2] - B^T adj(A) [B | g1], with no wait for 1/det A
+        s_h = _unit_scaled(concat([c, rhs[3:6]]) * m[12] - t, m[12])
+        p_u = m[0:12] * recip                   # A^-1 B by columns, A^-1 g1
         adj_s = _adjugate(s_h[0:6])
         pool = concat([adj_s, s_h])
         off_s = len(adj_s)
