@@ -6,17 +6,19 @@ narrow format from no damping up to lambda_max, float_system hands it entries of
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_loc_circuits import random_values
 
 from snail_common.circuit import CircuitBuilder
 from snail_common.circuit.cleartext import evaluate
-from snail_common.loc.driver import LAMBDA_MAX
+from snail_common.circuit.schedule import schedule_circuit
+from snail_common.loc.driver import LAMBDA_MAX, LAMBDA_MIN
 from snail_common.pnp.block_ldlt import SOLVE_FRAC, block_ldlt_solve
 from snail_common.pnp.fops import CircuitBackend, F, MirrorBackend
 from snail_common.pnp.normal import UPPER
 from snail_common.pnp.normal_fixed import float_system, weights_fixed
 from snail_common.pnp.sil import _fixed_sums, damped
-from snail_common.pnp.spec import Spec, build, input_shapes
+from snail_common.pnp.spec import Spec, build, input_shapes, run_mirror
 
 LAMS = [0.0, 1e-3, 1.0, LAMBDA_MAX]
 
@@ -84,8 +86,31 @@ def test_float_system_gives_the_solve_entries_of_at_most_one():
         assert np.all(np.isfinite(step)) and np.any(step != 0)
 
 
-def test_the_in_circuit_family_meets_the_issue_budget():
+@pytest.fixture(scope="module")
+def n6():
+    spec = Spec("lm", "sil", "ldlt", 6, arith="fixed")
+    return spec, build(spec)
+
+
+def test_the_in_circuit_family_meets_the_issue_budget(n6):
     """Issue 16: at n = 6 at most 0.45 M AND and AND-depth 2,500 (LDL^T: 0.449 M, 3,455)."""
-    circuit = build(Spec("lm", "sil", "ldlt", 6, arith="fixed"))
+    _, circuit = n6
     assert circuit.counts()["and"] <= 450_000
     assert circuit.depth() <= 2_500
+
+
+def test_the_whole_circuit_equals_its_mirror_from_lambda_min_to_max(n6):
+    spec, circuit = n6
+    rng = np.random.default_rng(9)
+    cases = [random_values(spec, rng) for _ in range(12)]
+    for case, lam in zip(cases, [LAMBDA_MIN, LAMBDA_MAX, *(c["lam"] for c in cases[2:])]):
+        case["lam"] = np.float32(lam)
+        case["wfix"] = weights_fixed(case["weights"])
+    batch = {k: np.stack([c[k] for c in cases]) for k in cases[0]}
+    out = evaluate(circuit, batch, schedule=schedule_circuit(circuit), batch=len(cases))
+    for i, case in enumerate(cases):
+        mirror = run_mirror(spec, case)
+        assert np.all(np.isfinite(mirror["step"])), i
+        for name in ("step", "cost"):
+            got = np.asarray(out[name][i], np.float32)
+            assert np.array_equal(got.view(np.uint32), mirror[name].view(np.uint32)), (i, name)
