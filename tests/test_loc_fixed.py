@@ -171,8 +171,8 @@ def test_localizing_on_it_lands_where_opencv_does(algorithm):
 
 
 def test_the_in_circuit_solve_in_fixed_point_equals_its_mirror():
-    """lm-sil-ldlt-n4-x: the sums as float32, the LDL^T solve, the step and the cost scaled
-    back by exponent arithmetic. Its step is the float64 step about as closely as the float
+    """lm-sil-ldlt-n4-x: the sums as float32, the block LDL^T solve, the step and the cost
+    scaled back by exponent arithmetic. Its step is the float64 step about as closely as the float
     circuit's (n = 4 systems are ill-conditioned), unless a point sits beyond the
     fixed-point projections' range (|a| >= 2: its J saturates, never its cost)."""
     spec = Spec("lm", "sil", "ldlt", 4, arith="fixed")

@@ -35,6 +35,7 @@ F_W = 9  # weights: the largest is 2^9 (they scale the sums, not the cost: 1,000
 W_W = 10  # scenes per algorithm converged as with 15 bits)
 W_COST = 24  # per-point costs, relative to the largest one: every float32 bit of it
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
+HESS_BITS = 31  # to_float's integers are at most 2^31 in magnitude (float_system)
 
 _U_COLS = [0, 2, 3, 4, 5]
 _V_COLS = [1, 2, 3, 4, 5]
@@ -145,13 +146,17 @@ def float_system(R: F, hess, grad, cost, ek, ec, er):
     """For a solve inside the circuit: the integer sums as float32 (hess, grad, cost) and
     the function taking the solution y of hess y = -grad to the step in the float
     circuit's units. The solve needs no scales: with H = D H' D and g = s D g' (D the
-    column scales), the step is s D^-1 y; only the cost and the step get exponents."""
+    column scales), the step is s D^-1 y; only the cost and the step get exponents.
+    ``hess`` comes as integers of at most 2^HESS_BITS times 2^-HESS_BITS, so its entries
+    are at most 1 and the block solve's cubic terms stay inside float32 even after
+    lambda_max damping (block_ldlt.py); the step's exponents undo that factor."""
     fx = fix_backend(R)
     hess_f, drop_h = fx.to_float(hess)
+    hess_f = fx.scale2(hess_f, -HESS_BITS)
     grad_f, drop_g = fx.to_float(grad)
     cost_f, drop_k = fx.to_float(cost)
     cost_f = fx.scale2(cost_f, fx.exponent_offset(ek, None, drop_k - W_COST - SCALE_BIAS))
-    shift = drop_g - drop_h
+    shift = drop_g - drop_h - HESS_BITS
     to_translation = fx.exponent_offset(er, ec, W_C - W_R + shift)        # sr - sc
     to_rotation = fx.exponent_offset(er, None, F_A - W_R - SCALE_BIAS + shift)   # sr + F_A
 

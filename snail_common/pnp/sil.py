@@ -14,7 +14,9 @@ groups (see INPUT_SHAPES).
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 
+from .block_ldlt import SOLVE_FRAC, block_ldlt_solve
 from .fixed import TC
 from .fops import F, stack
 from .ldlt import ldlt_solve
@@ -61,9 +63,11 @@ FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ek": (), "ec": 
 Solver = Callable[[F, F], F]
 
 
-def _solver(name: str) -> Solver:
+def _solver(name: str, arith: str) -> Solver:
+    """The named solver; LDL^T on the fixed-point sums is the block form (block_ldlt.py),
+    whose cubic adjugates need the bounded entries float_system gives it."""
     if name == "ldlt":
-        return ldlt_solve
+        return block_ldlt_solve if arith == "fixed" else ldlt_solve
     if name == "svd":
         return svd_solve
     raise ValueError(f"solver must be one of {SOLVERS}, got {name!r}")
@@ -103,9 +107,16 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
                                             inputs["world"], inputs["weights"])
     with hess.be.shallow():  # the solve is one long chain: spend gates to cut depth
         if algorithm == "lm":
-            hess = damped(hess, inputs["lam"])
-        step = _solver(solver)(hess, -grad)
+            with _damping_precision(hess, arith):
+                hess = damped(hess, inputs["lam"])
+        step = _solver(solver, arith)(hess, -grad)
     return {"step": step if unscale is None else unscale(step), "cost": cost}
+
+
+def _damping_precision(hess: F, arith: str) -> AbstractContextManager:
+    """The block solve reads only SOLVE_FRAC fraction bits of the damped matrix: damping
+    in that format costs one rounding there and shortens the chain by a float32 multiply."""
+    return hess.be.narrow(SOLVE_FRAC) if arith == "fixed" else nullcontext()
 
 
 def _fixed_sums(inputs: dict[str, F]) -> tuple:
