@@ -13,10 +13,10 @@ import subprocess
 import numpy as np
 import pytest
 
-from snail_client.embedded import embedded_services
 from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import registry
 from snail_common.net.conn import BURST_CONGESTION, parse_addr, prefer_bursts
+from tests.daemons import daemons_with
 
 CIRCUIT = "ops/fmul-x4"
 
@@ -45,11 +45,7 @@ def test_prefer_bursts_sets_cubic_on_the_socket():
 
 @pytest.fixture(scope="module")
 def services(tmp_path_factory):
-    cache = tmp_path_factory.mktemp("cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("SNAIL_CACHE_DIR", str(cache))
-        with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)}) as svc:
-            yield svc
+    yield from daemons_with(tmp_path_factory)
 
 
 def _ss_congestion(port: int) -> dict[tuple[int, int], str]:

@@ -10,7 +10,6 @@ import asyncio
 import numpy as np
 import pytest
 
-from snail_client.embedded import embedded_services
 from snail_client.localize import GarbledBackend
 from snail_client.secure import AsyncSecureRunner, FixedInputs
 from snail_common.circuit import evaluate_bits, registry
@@ -20,6 +19,7 @@ from snail_common.net.chunks import LabelAssembler, runs
 from snail_common.net.errors import ProtocolError
 from snail_common.net.messages import LABEL_BYTES
 from snail_common.pnp.spec import Spec
+from tests.daemons import daemons_with
 
 CIRCUIT = "ops/fmul-x4"
 
@@ -52,11 +52,7 @@ def test_runs_are_the_true_stretches():
 
 @pytest.fixture(scope="module")
 def services(tmp_path_factory):
-    cache = tmp_path_factory.mktemp("cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("SNAIL_CACHE_DIR", str(cache))
-        with embedded_services(env={"SNAIL_CACHE_DIR": str(cache)}) as svc:
-            yield svc
+    yield from daemons_with(tmp_path_factory)
 
 
 def _cleartext(bits: np.ndarray) -> np.ndarray:
