@@ -26,6 +26,7 @@ import numpy as np
 
 from snail_common.arith import fconvert, integer, multiply, shift
 from snail_common.arith import mirror as m
+from snail_common.arith.fbits import round_pack
 from snail_common.arith.words import broadcast_lead, const, or_all, sext, zext
 
 from .fops import CircuitBackend, F, MirrorBackend
@@ -72,11 +73,12 @@ class FixMirror:
 
     def from_float(self, x: F, emax, width: int) -> SM:
         """x as ``width``-bit magnitudes at scale 2^(emax - width - SCALE_BIAS); above that
-        scale (e > emax, only with a public emax) the magnitude saturates."""
+        scale (e > emax) the magnitude saturates. Wider than 24 bits, the significand's
+        low end is zero-padded; ``emax`` may be up to 9 bits (``exponent_plus``)."""
         bits = np.asarray(x.v, np.float32).view(np.uint32).astype(np.int64)
         e = (bits >> 23) & 0xFF
         sig = np.where(e != 0, (bits & 0x7FFFFF) | (1 << 23), bits & 0x7FFFFF)
-        top = sig >> (24 - width)
+        top = sig >> (24 - width) if width <= 24 else sig << (width - 24)
         d = np.int64(emax) - e
         mag = np.where(d >= width, 0, top >> np.clip(d, 0, width - 1))
         mag = np.where(d < 0, (1 << width) - 1, mag)
@@ -114,6 +116,10 @@ class FixMirror:
     def twos(self, x: SM) -> TC:
         return TC(np.where(x.s == 1, -x.m, x.m), x.w + 1)
 
+    def add_tc(self, x: TC, y: TC) -> TC:
+        """x + y, broadcast, one bit wider than the wider (no overflow)."""
+        return TC(x.v + y.v, max(x.w, y.w) + 1)
+
     def stack(self, xs: list[SM], axis: int) -> SM:
         return SM(np.stack([x.s for x in xs], axis), np.stack([x.m for x in xs], axis),
                   max(x.w for x in xs))
@@ -135,6 +141,18 @@ class FixMirror:
         e2 = np.where(e != 0, (e + np.asarray(k, np.int64)) & 0xFF, 0)
         out = (bits & ~(0xFF << 23)) | (e2 << 23)
         return F(x.be, out.astype(np.uint32).view(np.float32))
+
+    def exponent_plus(self, x, k: int):
+        """x + k for an exponent x and k >= 0, without wrapping (9 bits in the circuit)."""
+        return np.int64(x) + k
+
+    def to_float_scaled(self, x: TC, emax, width: int) -> F:
+        """from_float's inverse: the float32 nearest x * 2^(emax - width - SCALE_BIAS),
+        rounded to nearest even, flushed to zero below 2^-126."""
+        v = np.asarray(x.v, np.int64).astype(np.float64)
+        with np.errstate(over="ignore"):
+            out = (v * np.exp2(float(emax) - width - SCALE_BIAS)).astype(np.float32)
+        return F(self.be, m.ftz(out))
 
     def sum_tc(self, x: TC) -> TC:
         """Sum over axis 0 (exact: any order gives the same integer)."""
@@ -169,12 +187,13 @@ class FixCircuit:
         v = np.asarray(x.v)
         e = v[..., 23:31]
         sig = np.concatenate([v[..., :23], or_all(b, e)[..., None]], axis=-1)
-        top = sig[..., 24 - width:]
-        em = const(int(emax), 9) if isinstance(emax, (int, np.integer)) else zext(emax, 9)
-        d = integer.sub(b, em, zext(e, 9))          # 9-bit two's complement: emax - e
+        pad = np.zeros(sig.shape[:-1] + (max(width - 24, 0),), np.int32)
+        top = np.concatenate([pad, sig[..., max(24 - width, 0):]], axis=-1)
+        em = const(int(emax), 10) if isinstance(emax, (int, np.integer)) else zext(emax, 10)
+        d = integer.sub(b, em, zext(e, 10))         # 10-bit two's complement: emax - e
         stages = (width - 1).bit_length()
-        over = d[..., 8]                            # e > emax: saturate
-        gone = b.and_(or_all(b, d[..., stages:8]), b.not_(over))  # d >= 2^stages >= width
+        over = d[..., 9]                            # e > emax: saturate
+        gone = b.and_(or_all(b, d[..., stages:9]), b.not_(over))  # d >= 2^stages >= width
         mag = shift.shr(b, top, d[..., :stages])    # d in [width, 2^stages) shifts all out
         mag = b.and_(mag, b.not_(gone)[..., None])
         mag = b.or_(mag, over[..., None])
@@ -212,6 +231,11 @@ class FixCircuit:
     def twos(self, x: SM) -> TC:
         return TC(integer.cond_negate(self.b, zext(x.m, x.w + 1), x.s), x.w + 1)
 
+    def add_tc(self, x: TC, y: TC) -> TC:
+        w = max(x.w, y.w)
+        xv, yv = broadcast_lead(sext(np.asarray(x.v), w), sext(np.asarray(y.v), w))
+        return TC(integer.add_wide(self.b, xv, yv, signed=True), w + 1)
+
     def stack(self, xs: list[SM], axis: int) -> SM:
         w = max(x.w for x in xs)
         return SM(np.stack([np.asarray(x.s) for x in xs], axis),
@@ -233,6 +257,24 @@ class FixCircuit:
         kw = const(int(k) % 256, 8) if isinstance(k, (int, np.integer)) else k
         e2 = b.and_(integer.add(b, e, kw), or_all(b, e)[..., None])
         return F(x.be, np.concatenate([v[..., :23], e2, v[..., 31:]], axis=-1))
+
+    def exponent_plus(self, x, k: int):
+        """x + k as a 9-bit word (x an 8-bit exponent word, 0 <= k < 256)."""
+        return integer.add(self.b, zext(x, 9), const(k, 9))
+
+    def to_float_scaled(self, x: TC, emax, width: int) -> F:
+        """Sign and magnitude, a leading-zero normalization of the whole word, round to
+        nearest even; the exponent is emax's plus the top bit's position."""
+        b = self.b
+        v = np.asarray(x.v)
+        mag = integer.cond_negate(b, v, v[..., -1])
+        top, lz = shift.normalize(b, mag)
+        em = const(int(emax), 11) if isinstance(emax, (int, np.integer)) else zext(emax, 11)
+        e1 = integer.sub(b, integer.add(b, em, const((x.w - 1 - width) % 2048, 11)),
+                         zext(lz, 11))            # biased exponent minus one
+        sticky = or_all(b, top[..., :x.w - 25])
+        return F(self.be, round_pack(b, v[..., -1], e1, top[..., x.w - 24:], top[..., x.w - 25],
+                                     sticky, zero=b.not_(top[..., -1])))
 
     def exponent_offset(self, x, y, k: int):
         """x - y + k modulo 256 for 8-bit exponent words (y may be None)."""
