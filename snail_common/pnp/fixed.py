@@ -109,6 +109,10 @@ class FixMirror:
         """Signs XORed; magnitudes (|x| |y|) >> drop, kept to ``width`` bits."""
         return SM(x.s ^ y.s, ((x.m * y.m) >> drop) & ((1 << width) - 1), width)
 
+    def shr(self, x: SM, k: int) -> SM:
+        """|x| >> k, k bits narrower: a truncation that costs no gates."""
+        return SM(x.s, x.m >> k, x.w - k)
+
     def add_const(self, x: SM, k: int, width: int) -> SM:
         """|x| + k for a non-negative x (its sign is kept)."""
         return SM(x.s, (x.m + k) & ((1 << width) - 1), width)
@@ -224,6 +228,9 @@ class FixCircuit:
         xm, ym = broadcast_lead(x.m, y.m)
         prod = multiply.mul(self.b, xm, ym)
         return SM(self.b.xor(x.s, y.s), zext(prod[..., drop:], width), width)
+
+    def shr(self, x: SM, k: int) -> SM:
+        return SM(x.s, np.asarray(x.m)[..., k:], x.w - k)
 
     def add_const(self, x: SM, k: int, width: int) -> SM:
         return SM(x.s, integer.add(self.b, zext(x.m, width), const(k, width)), width)
