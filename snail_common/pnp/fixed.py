@@ -27,7 +27,8 @@ import numpy as np
 from snail_common.arith import fconvert, integer, multiply, shift
 from snail_common.arith import mirror as m
 from snail_common.arith.fbits import round_pack
-from snail_common.arith.words import broadcast_lead, const, or_all, sext, zext
+from snail_common.arith.words import broadcast_lead, cat, const, or_all, sext, zext
+from snail_common.circuit import ONE, ZERO
 
 from .fops import CircuitBackend, F, MirrorBackend
 
@@ -108,6 +109,29 @@ class FixMirror:
     def mul(self, x: SM, y: SM, drop: int, width: int) -> SM:
         """Signs XORed; magnitudes (|x| |y|) >> drop, kept to ``width`` bits."""
         return SM(x.s ^ y.s, ((x.m * y.m) >> drop) & ((1 << width) - 1), width)
+
+    def mul_cut(self, x: SM, y: SM, drop: int, cut: int, width: int) -> TC:
+        """The signed product x y / 2^drop from the radix-4 partial products of 2|x||y|
+        (multiply.mul_radix4: digits of 2|y| + 1, minus |x|) floored at 2^cut: each of the
+        T terms is floored there (a term's carry-in below 2^cut is dropped, so a negative
+        one may lose up to 2 units), the sum floored at 2^(drop + 1). The magnitude is
+        floor(|x y| / 2^drop) - e, 0 <= e <= 2T / 2^(drop + 1 - cut), possibly -1; TC of
+        ``width`` + 1 bits, ``width`` holding the magnitude; 1 <= cut <= drop + 1."""
+        xm, ym = np.broadcast_arrays(np.asarray(x.m, np.int64), np.asarray(y.m, np.int64))
+        digits = 2 * ym + 1
+        k = y.w + 1
+        total = ((-xm - 1) >> cut) + (xm << k >> cut if k % 2 == 0 else 0)
+        for j in range(0, k, 2):
+            lo, hi = (digits >> (j + 1)) & 1, (digits >> (j + 2)) & 1
+            if j + 1 >= k:
+                total = total + (xm << j >> cut)
+                continue
+            row = np.where(lo == hi, 3 * xm, xm)
+            term = np.where(hi == 0, -row - 1, row)
+            total = total + (term << j >> cut) + (np.where(hi == 0, 1, 0) << j >> cut
+                                                 if j >= cut else 0)
+        mag = total >> (drop + 1 - cut)
+        return TC(np.where((x.s ^ y.s) == 1, -mag, mag), width + 1)
 
     def shr(self, x: SM, k: int) -> SM:
         """|x| >> k, k bits narrower: a truncation that costs no gates."""
@@ -229,6 +253,42 @@ class FixCircuit:
         prod = multiply.mul(self.b, xm, ym)
         return SM(self.b.xor(x.s, y.s), zext(prod[..., drop:], width), width)
 
+    def mul_cut(self, x: SM, y: SM, drop: int, cut: int, width: int) -> TC:
+        """Radix-4 rows built only from their bits at or above 2^cut (each row's mux and
+        adder below it are never emitted); 3|x| and |x| ^ 3|x| are formed before ``x`` is
+        broadcast, so a shared operand pays for them once."""
+        b = self.b
+        n, k = x.w, y.w + 1
+        xw = zext(x.m, n + 2)
+        x3 = integer.add_wide(b, shift.shl_const(x.m, 1, n + 1), x.m)
+        diff = b.xor(xw, x3)
+        lead = np.broadcast_shapes(np.shape(x.s), np.shape(y.s))
+        ends = np.full(np.shape(y.s), ZERO, np.int32)
+        digit = [b.not_(ends)] + [np.asarray(y.m)[..., i] for i in range(y.w)] + [ends, ends]
+        ones = np.full(np.shape(x.s) + (1,), ONE, np.int32)
+        terms = [(0, cat(b.not_(xw[..., min(cut, n):n]), ones), ZERO)]  # -|x| - 1
+
+        def positive(at: int):
+            lo = min(max(cut - at, 0), n + 2)
+            return at, zext(xw[..., lo:], n + 3 - lo), ZERO
+
+        if k % 2 == 0:
+            terms.append(positive(k))
+        for j in range(0, k, 2):
+            lo = min(max(cut - j, 0), n + 2)
+            if j + 1 >= k:
+                terms.append(positive(j))
+                continue
+            three = b.not_(b.xor(digit[j + 1], digit[j + 2]))
+            neg = b.not_(digit[j + 2])
+            row = b.xor(np.broadcast_to(xw[..., lo:], lead + (n + 2 - lo,)),
+                        b.and_(three[..., None], diff[..., lo:]))
+            terms.append((j, cat(b.xor(row, neg[..., None]), neg[..., None]),
+                          neg if j >= cut else ZERO))
+        acc = _accumulate(b, terms, cut, n + y.w + 2 - cut)
+        mag = sext(acc[..., drop + 1 - cut:], width + 1)
+        return TC(integer.cond_negate(b, mag, b.xor(x.s, y.s)), width + 1)
+
     def shr(self, x: SM, k: int) -> SM:
         return SM(x.s, np.asarray(x.m)[..., k:], x.w - k)
 
@@ -297,6 +357,27 @@ class FixCircuit:
             rest = sext(v[2 * half:], w + 1)
             v, w = np.concatenate([pair, rest], axis=0), w + 1
         return TC(v[0], w)
+
+
+def _accumulate(b, terms: list, cut: int, total: int) -> np.ndarray:
+    """Sum of (shift, two's complement word, carry-in) terms, each word's bit 0 at
+    2^max(shift, cut), as a ``total``-bit word whose bit 0 is 2^cut (modulo 2^total):
+    bits below the next term's offset are final and leave the adder."""
+    terms = sorted(terms, key=lambda term: max(term[0] - cut, 0))
+    lead = np.broadcast_shapes(*(np.shape(w)[:-1] for _, w, _ in terms))
+    acc, pos, out = None, 0, []
+    for first_bit, word, cin in terms:
+        at = max(first_bit - cut, 0)
+        word = np.broadcast_to(word, lead + np.shape(word)[-1:])
+        if acc is None:  # -|x| - 1, which has no carry-in
+            acc, pos = word, at
+            continue
+        out.extend(acc[..., i] for i in range(at - pos))
+        acc, pos = acc[..., at - pos:], at
+        w = min(max(acc.shape[-1], word.shape[-1]) + 1, total - pos)
+        acc = integer.add(b, sext(acc, w), sext(word, w), np.broadcast_to(cin, lead))
+    out.extend(acc[..., i] for i in range(acc.shape[-1]))
+    return sext(np.stack(out, axis=-1), total)[..., :total]
 
 
 def fix_backend(x: F):
