@@ -106,6 +106,10 @@ class FixMirror:
     def neg(self, x: SM) -> SM:
         return SM(x.s ^ 1, x.m, x.w)
 
+    def neg_tc(self, x: TC) -> TC:
+        """-x, the same width (x is never the most negative word)."""
+        return TC(-np.asarray(x.v, np.int64), x.w)
+
     def mul(self, x: SM, y: SM, drop: int, width: int) -> SM:
         """Signs XORed; magnitudes (|x| |y|) >> drop, kept to ``width`` bits."""
         return SM(x.s ^ y.s, ((x.m * y.m) >> drop) & ((1 << width) - 1), width)
@@ -247,6 +251,9 @@ class FixCircuit:
 
     def neg(self, x: SM) -> SM:
         return SM(self.b.not_(x.s), x.m, x.w)
+
+    def neg_tc(self, x: TC) -> TC:
+        return TC(integer.negate(self.b, x.v), x.w)
 
     def mul(self, x: SM, y: SM, drop: int, width: int) -> SM:
         xm, ym = broadcast_lead(x.m, y.m)

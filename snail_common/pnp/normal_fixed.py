@@ -23,7 +23,8 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   sets how fast the iteration converges, J^T W r where it converges: at 10 bits (against
   13) 2 x 1,000 random scenes (seeds 1 and 2, LM and GN) were as accurate as before and
   needed as many iterations; shift 4 lost a GN scene and left one unconverged (seed 2),
-  shift 5 lost two (seed 1);
+  shift 5 lost two (seed 1). The products of J^T W J and J^T W r are truncated
+  (fixed.mul_cut, GUARD and H_GUARD), each row of J^T W J's with one shared multiplicand;
 - the client passes its weights twice: as float32 for the cost, and normalized to a
   largest weight of 1 as 10-bit integers (``wfix``) for the sums.
 
@@ -53,7 +54,9 @@ DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 H_SHIFT = 3  # J^T W J takes the Jacobian's magnitudes H_SHIFT bits shorter (module doc)
 F_ROT = 24  # fraction bits of the rotation entries: all of float32's for |r| in [1/2, 1]
 W_MAP = 26  # map coordinates, relative to the largest one's binade: 2 bits below float32's
-GUARD = 3  # R_ij X_j keeps the partial products from GUARD bits below its unit (mul_cut)
+GUARD = 3  # R_ij X_j and J^T W r keep the partial products from GUARD bits below the
+# result's unit (fixed.mul_cut); J^T W J from H_GUARD bits below (3 lost GN scenes)
+H_GUARD = 5
 T_BITS = 12  # the translation's headroom over that binade (module doc: camera points)
 
 _U_COLS = [0, 2, 3, 4, 5]
@@ -62,8 +65,6 @@ _PAIRS = [(i, k) for i in range(5) for k in range(i, 5)]
 # Pair (1, 4) of either row, the (2, 5) entry, is a b c times the weight: minus pair (0, 2)
 # of ju and minus pair (0, 3) of jv, so each row computes 14 products (normal.py).
 _COMPUTED = [pair for pair in _PAIRS if pair != (1, 4)]
-_LEFT = [i for i, _ in _COMPUTED]
-_RIGHT = [k for _, k in _COMPUTED]
 _MIRRORED = (_COMPUTED.index((0, 2)), _COMPUTED.index((0, 3)))
 _ORDER = [_COMPUTED.index(p) if p != (1, 4) else len(_COMPUTED) for p in _PAIRS]
 
@@ -137,15 +138,18 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
     jh = fx.shr(jac, H_SHIFT)
     wjac = fx.mul(w[:, :, None], jh, F_W, jh.w)
     pair_w = 2 * jac.w - DROP
-    computed = fx.mul(wjac[:, :, _LEFT], jh[:, :, _RIGHT], DROP - 2 * H_SHIFT, pair_w)
-    mirrored = fx.neg(fx.stack([computed[:, 0, _MIRRORED[0]], computed[:, 1, _MIRRORED[1]]], 1))
-    hpair = fx.twos(fx.stack([*(computed[:, :, p] for p in range(len(_COMPUTED))),
-                              mirrored], 2)[:, :, _ORDER])
+    drop_h = DROP - 2 * H_SHIFT
+    computed = fx.concat_tc([fx.mul_cut(wjac[:, :, i:i + 1], jh[:, :, i:4 if i == 1 else 5],
+                                        drop_h, drop_h - H_GUARD, pair_w)
+                             for i in range(5)], 2)                    # (n, 2, 14)
+    mirrored = fx.neg_tc(fx.stack_tc([fx.index_tc(computed, (slice(None), row, [_MIRRORED[row]]))
+                                      for row in range(2)], 1))      # (n, 2, 1)
+    hpair = fx.index_tc(fx.concat_tc([computed, mirrored], 2), (slice(None), slice(None), _ORDER))
     entries = [e for e in UPPER if e != (0, 1)]
     hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
     hess = fx.sum_tc(hterms)
     wr = fx.mul(w, r, F_W, W_R)
-    gpart = fx.twos(fx.mul(jac, wr[:, :, None], DROP, jac.w + W_R - DROP))
+    gpart = fx.mul_cut(wr[:, :, None], jac, DROP, DROP - GUARD, jac.w + W_R - DROP)
     gentries = [(i,) for i in range(6)]
     gterms = _gather(fx, gpart, n, (_sources(_U_COLS, gentries), _sources(_V_COLS, gentries)))
     grad = fx.sum_tc(gterms)
