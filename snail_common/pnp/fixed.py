@@ -16,6 +16,9 @@ precision relative to the block's largest.
 
 Every operation is exact integer arithmetic on truncated magnitudes, so the numpy
 mirror (``FixMirror``) is bit-identical to the circuit (``FixCircuit``) by construction.
+That includes the truncated products (``mul_cut``): the radix-4 partial products below a
+cut are never built, about a third of a product whose low half is dropped anyway, and
+the mirror sums exactly the partial products that are.
 """
 
 from __future__ import annotations
