@@ -16,6 +16,9 @@ precision relative to the block's largest.
 
 Every operation is exact integer arithmetic on truncated magnitudes, so the numpy
 mirror (``FixMirror``) is bit-identical to the circuit (``FixCircuit``) by construction.
+That includes the truncated products (``mul_cut``): the radix-4 partial products below a
+cut are never built, about a third of a product whose low half is dropped anyway, and
+the mirror sums exactly the partial products that are.
 """
 
 from __future__ import annotations
@@ -26,7 +29,9 @@ import numpy as np
 
 from snail_common.arith import fconvert, integer, multiply, shift
 from snail_common.arith import mirror as m
-from snail_common.arith.words import broadcast_lead, const, or_all, sext, zext
+from snail_common.arith.fbits import round_pack
+from snail_common.arith.words import broadcast_lead, cat, const, or_all, sext, zext
+from snail_common.circuit import ONE, ZERO
 
 from .fops import CircuitBackend, F, MirrorBackend
 
@@ -72,11 +77,12 @@ class FixMirror:
 
     def from_float(self, x: F, emax, width: int) -> SM:
         """x as ``width``-bit magnitudes at scale 2^(emax - width - SCALE_BIAS); above that
-        scale (e > emax, only with a public emax) the magnitude saturates."""
+        scale (e > emax) the magnitude saturates. Wider than 24 bits, the significand's
+        low end is zero-padded; ``emax`` may be up to 9 bits (``exponent_plus``)."""
         bits = np.asarray(x.v, np.float32).view(np.uint32).astype(np.int64)
         e = (bits >> 23) & 0xFF
         sig = np.where(e != 0, (bits & 0x7FFFFF) | (1 << 23), bits & 0x7FFFFF)
-        top = sig >> (24 - width)
+        top = sig >> (24 - width) if width <= 24 else sig << (width - 24)
         d = np.int64(emax) - e
         mag = np.where(d >= width, 0, top >> np.clip(d, 0, width - 1))
         mag = np.where(d < 0, (1 << width) - 1, mag)
@@ -103,9 +109,36 @@ class FixMirror:
     def neg(self, x: SM) -> SM:
         return SM(x.s ^ 1, x.m, x.w)
 
+    def neg_tc(self, x: TC) -> TC:
+        """-x, the same width (x is never the most negative word)."""
+        return TC(-np.asarray(x.v, np.int64), x.w)
+
     def mul(self, x: SM, y: SM, drop: int, width: int) -> SM:
         """Signs XORed; magnitudes (|x| |y|) >> drop, kept to ``width`` bits."""
         return SM(x.s ^ y.s, ((x.m * y.m) >> drop) & ((1 << width) - 1), width)
+
+    def mul_cut(self, x: SM, y: SM, drop: int, cut: int, width: int) -> TC:
+        """The signed product x y / 2^drop from the radix-4 partial products of 2|x||y|
+        (multiply.mul_radix4: digits of 2|y| + 1, minus |x|) floored at 2^cut: each of the
+        T terms is floored there (a term's carry-in below 2^cut is dropped, so a negative
+        one may lose up to 2 units), the sum floored at 2^(drop + 1). The magnitude is
+        floor(|x y| / 2^drop) - e, 0 <= e <= 2T / 2^(drop + 1 - cut), possibly -1; TC of
+        ``width`` + 1 bits, ``width`` holding the magnitude; 1 <= cut <= drop + 1."""
+        xm, ym = np.broadcast_arrays(np.asarray(x.m, np.int64), np.asarray(y.m, np.int64))
+        digits = 2 * ym + 1
+        k = y.w + 1
+        total = ((-xm - 1) >> cut) + (xm << k >> cut if k % 2 == 0 else 0)
+        for j in range(0, k, 2):
+            lo, hi = (digits >> (j + 1)) & 1, (digits >> (j + 2)) & 1
+            if j + 1 >= k:
+                total = total + (xm << j >> cut)
+                continue
+            row = np.where(lo == hi, 3 * xm, xm)
+            term = np.where(hi == 0, -row - 1, row)
+            total = total + (term << j >> cut) + (np.where(hi == 0, 1, 0) << j >> cut
+                                                 if j >= cut else 0)
+        mag = total >> (drop + 1 - cut)
+        return TC(np.where((x.s ^ y.s) == 1, -mag, mag), width + 1)
 
     def add_const(self, x: SM, k: int, width: int) -> SM:
         """|x| + k for a non-negative x (its sign is kept)."""
@@ -113,6 +146,10 @@ class FixMirror:
 
     def twos(self, x: SM) -> TC:
         return TC(np.where(x.s == 1, -x.m, x.m), x.w + 1)
+
+    def add_tc(self, x: TC, y: TC) -> TC:
+        """x + y, broadcast, one bit wider than the wider (no overflow)."""
+        return TC(x.v + y.v, max(x.w, y.w) + 1)
 
     def stack(self, xs: list[SM], axis: int) -> SM:
         return SM(np.stack([x.s for x in xs], axis), np.stack([x.m for x in xs], axis),
@@ -135,6 +172,18 @@ class FixMirror:
         e2 = np.where(e != 0, (e + np.asarray(k, np.int64)) & 0xFF, 0)
         out = (bits & ~(0xFF << 23)) | (e2 << 23)
         return F(x.be, out.astype(np.uint32).view(np.float32))
+
+    def exponent_plus(self, x, k: int):
+        """x + k for an exponent x and k >= 0, without wrapping (9 bits in the circuit)."""
+        return np.int64(x) + k
+
+    def to_float_scaled(self, x: TC, emax, width: int) -> F:
+        """from_float's inverse: the float32 nearest x * 2^(emax - width - SCALE_BIAS),
+        rounded to nearest even, flushed to zero below 2^-126."""
+        v = np.asarray(x.v, np.int64).astype(np.float64)
+        with np.errstate(over="ignore"):
+            out = (v * np.exp2(float(emax) - width - SCALE_BIAS)).astype(np.float32)
+        return F(self.be, m.ftz(out))
 
     def sum_tc(self, x: TC) -> TC:
         """Sum over axis 0 (exact: any order gives the same integer)."""
@@ -169,12 +218,13 @@ class FixCircuit:
         v = np.asarray(x.v)
         e = v[..., 23:31]
         sig = np.concatenate([v[..., :23], or_all(b, e)[..., None]], axis=-1)
-        top = sig[..., 24 - width:]
-        em = const(int(emax), 9) if isinstance(emax, (int, np.integer)) else zext(emax, 9)
-        d = integer.sub(b, em, zext(e, 9))          # 9-bit two's complement: emax - e
+        pad = np.zeros(sig.shape[:-1] + (max(width - 24, 0),), np.int32)
+        top = np.concatenate([pad, sig[..., max(24 - width, 0):]], axis=-1)
+        em = const(int(emax), 10) if isinstance(emax, (int, np.integer)) else zext(emax, 10)
+        d = integer.sub(b, em, zext(e, 10))         # 10-bit two's complement: emax - e
         stages = (width - 1).bit_length()
-        over = d[..., 8]                            # e > emax: saturate
-        gone = b.and_(or_all(b, d[..., stages:8]), b.not_(over))  # d >= 2^stages >= width
+        over = d[..., 9]                            # e > emax: saturate
+        gone = b.and_(or_all(b, d[..., stages:9]), b.not_(over))  # d >= 2^stages >= width
         mag = shift.shr(b, top, d[..., :stages])    # d in [width, 2^stages) shifts all out
         mag = b.and_(mag, b.not_(gone)[..., None])
         mag = b.or_(mag, over[..., None])
@@ -201,16 +251,60 @@ class FixCircuit:
     def neg(self, x: SM) -> SM:
         return SM(self.b.not_(x.s), x.m, x.w)
 
+    def neg_tc(self, x: TC) -> TC:
+        return TC(integer.negate(self.b, x.v), x.w)
+
     def mul(self, x: SM, y: SM, drop: int, width: int) -> SM:
         xm, ym = broadcast_lead(x.m, y.m)
         prod = multiply.mul(self.b, xm, ym)
         return SM(self.b.xor(x.s, y.s), zext(prod[..., drop:], width), width)
+
+    def mul_cut(self, x: SM, y: SM, drop: int, cut: int, width: int) -> TC:
+        """Radix-4 rows built only from their bits at or above 2^cut (each row's mux and
+        adder below it are never emitted); 3|x| and |x| ^ 3|x| are formed before ``x`` is
+        broadcast, so a shared operand pays for them once."""
+        b = self.b
+        n, k = x.w, y.w + 1
+        xw = zext(x.m, n + 2)
+        x3 = integer.add_wide(b, shift.shl_const(x.m, 1, n + 1), x.m)
+        diff = b.xor(xw, x3)
+        lead = np.broadcast_shapes(np.shape(x.s), np.shape(y.s))
+        ends = np.full(np.shape(y.s), ZERO, np.int32)
+        digit = [b.not_(ends)] + [np.asarray(y.m)[..., i] for i in range(y.w)] + [ends, ends]
+        ones = np.full(np.shape(x.s) + (1,), ONE, np.int32)
+        terms = [(0, cat(b.not_(xw[..., min(cut, n):n]), ones), ZERO)]  # -|x| - 1
+
+        def positive(at: int):
+            lo = min(max(cut - at, 0), n + 2)
+            return at, zext(xw[..., lo:], n + 3 - lo), ZERO
+
+        if k % 2 == 0:
+            terms.append(positive(k))
+        for j in range(0, k, 2):
+            lo = min(max(cut - j, 0), n + 2)
+            if j + 1 >= k:
+                terms.append(positive(j))
+                continue
+            three = b.not_(b.xor(digit[j + 1], digit[j + 2]))
+            neg = b.not_(digit[j + 2])
+            row = b.xor(np.broadcast_to(xw[..., lo:], lead + (n + 2 - lo,)),
+                        b.and_(three[..., None], diff[..., lo:]))
+            terms.append((j, cat(b.xor(row, neg[..., None]), neg[..., None]),
+                          neg if j >= cut else ZERO))
+        acc = _accumulate(b, terms, cut, n + y.w + 2 - cut)
+        mag = sext(acc[..., drop + 1 - cut:], width + 1)
+        return TC(integer.cond_negate(b, mag, b.xor(x.s, y.s)), width + 1)
 
     def add_const(self, x: SM, k: int, width: int) -> SM:
         return SM(x.s, integer.add(self.b, zext(x.m, width), const(k, width)), width)
 
     def twos(self, x: SM) -> TC:
         return TC(integer.cond_negate(self.b, zext(x.m, x.w + 1), x.s), x.w + 1)
+
+    def add_tc(self, x: TC, y: TC) -> TC:
+        w = max(x.w, y.w)
+        xv, yv = broadcast_lead(sext(np.asarray(x.v), w), sext(np.asarray(y.v), w))
+        return TC(integer.add_wide(self.b, xv, yv, signed=True), w + 1)
 
     def stack(self, xs: list[SM], axis: int) -> SM:
         w = max(x.w for x in xs)
@@ -234,6 +328,24 @@ class FixCircuit:
         e2 = b.and_(integer.add(b, e, kw), or_all(b, e)[..., None])
         return F(x.be, np.concatenate([v[..., :23], e2, v[..., 31:]], axis=-1))
 
+    def exponent_plus(self, x, k: int):
+        """x + k as a 9-bit word (x an 8-bit exponent word, 0 <= k < 256)."""
+        return integer.add(self.b, zext(x, 9), const(k, 9))
+
+    def to_float_scaled(self, x: TC, emax, width: int) -> F:
+        """Sign and magnitude, a leading-zero normalization of the whole word, round to
+        nearest even; the exponent is emax's plus the top bit's position."""
+        b = self.b
+        v = np.asarray(x.v)
+        mag = integer.cond_negate(b, v, v[..., -1])
+        top, lz = shift.normalize(b, mag)
+        em = const(int(emax), 11) if isinstance(emax, (int, np.integer)) else zext(emax, 11)
+        e1 = integer.sub(b, integer.add(b, em, const((x.w - 1 - width) % 2048, 11)),
+                         zext(lz, 11))            # biased exponent minus one
+        sticky = or_all(b, top[..., :x.w - 25])
+        return F(self.be, round_pack(b, v[..., -1], e1, top[..., x.w - 24:], top[..., x.w - 25],
+                                     sticky, zero=b.not_(top[..., -1])))
+
     def exponent_offset(self, x, y, k: int):
         """x - y + k modulo 256 for 8-bit exponent words (y may be None)."""
         total = integer.add(self.b, x, const(k % 256, 8))
@@ -248,6 +360,27 @@ class FixCircuit:
             rest = sext(v[2 * half:], w + 1)
             v, w = np.concatenate([pair, rest], axis=0), w + 1
         return TC(v[0], w)
+
+
+def _accumulate(b, terms: list, cut: int, total: int) -> np.ndarray:
+    """Sum of (shift, two's complement word, carry-in) terms, each word's bit 0 at
+    2^max(shift, cut), as a ``total``-bit word whose bit 0 is 2^cut (modulo 2^total):
+    bits below the next term's offset are final and leave the adder."""
+    terms = sorted(terms, key=lambda term: max(term[0] - cut, 0))
+    lead = np.broadcast_shapes(*(np.shape(w)[:-1] for _, w, _ in terms))
+    acc, pos, out = None, 0, []
+    for first_bit, word, cin in terms:
+        at = max(first_bit - cut, 0)
+        word = np.broadcast_to(word, lead + np.shape(word)[-1:])
+        if acc is None:  # -|x| - 1, which has no carry-in
+            acc, pos = word, at
+            continue
+        out.extend(acc[..., i] for i in range(at - pos))
+        acc, pos = acc[..., at - pos:], at
+        w = min(max(acc.shape[-1], word.shape[-1]) + 1, total - pos)
+        acc = integer.add(b, sext(acc, w), sext(word, w), np.broadcast_to(cin, lead))
+    out.extend(acc[..., i] for i in range(acc.shape[-1]))
+    return sext(np.stack(out, axis=-1), total)[..., :total]
 
 
 def fix_backend(x: F):

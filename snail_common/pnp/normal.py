@@ -57,7 +57,11 @@ def camera_points(R: F, t: F, world: F) -> F:
 
 def residuals(R: F, t: F, image: F, world: F) -> tuple[F, F, F]:
     """Normalized projections (n, 2), residuals (n, 2) and inverse depths (n,)."""
-    xc = camera_points(R, t, world)
+    return project(camera_points(R, t, world), image)
+
+
+def project(xc: F, image: F) -> tuple[F, F, F]:
+    """residuals() from the camera points ``xc`` (n, 3)."""
     inv_z = 1.0 / xc[:, 2]
     proj = xc[:, 0:2] * inv_z[:, None]
     return proj, proj - image, inv_z

@@ -1,14 +1,28 @@
 """The normal equations with fixed-point per-point work (circuit ``nx-sil-nN``).
 
 Same quantities as normal.py, computed differently where precision allows (fixed.py):
-- float32 as before: camera points, projections, residuals and the cost, which decides
-  acceptance and must resolve relative changes of 1e-4 (driver.py);
+- camera points R X + t in fixed point, rounded once to float32 (``camera_points_fixed``):
+  truncated integer products (fixed.mul_cut) and exact sums cost 7.1 k AND per point
+  against 12.9 k for float32, with a cost as precise (against float64, 200 scenes at
+  their optimum: median relative error 8.9e-6 and largest 6.6e-5, float32 camera points
+  6.0e-6 and 5.1e-5; a relative change of 1e-4 stays resolved). The client's map is
+  centered with unit RMS radius (preprocess.py), but a map owner's selection can reach
+  far out, so the map enters as block floating point (one exponent for all its
+  coordinates) and t at the same scale with T_BITS more integer bits: it saturates only
+  for a camera 2^11 map radii away, where no point spread could be resolved anyway;
+- float32 as before: projections, residuals and the cost, which decides acceptance and
+  must resolve relative changes of 1e-4 (driver.py);
 - fixed point: the Jacobian, J^T W J and J^T W r, at about 13 significant bits, the
   precision normal.py's narrow floats already had. Projections a, b enter at a public
   scale (2^-13, saturating at |a| = 2, 63 degrees off the optical axis: only the step of
   such a point degrades, never the cost); inverse depths and residuals as block floating
   point, each block sharing its largest exponent, which the circuit returns (``ec``,
   ``er``) so the client can scale the sums back;
+- the products of J^T W J and J^T W r are truncated (fixed.mul_cut, GUARD and H_GUARD),
+  each row of J^T W J's with one shared multiplicand. J^T W J from Jacobian magnitudes
+  3 bits shorter would save another 1.9 k AND per point and kept the client's solve as
+  accurate (2 x 1,000 scenes), but LM solving inside the circuit (x10 / /10 damping)
+  then ended at the 20-iteration cap on 2 of 1,000 scenes (seed 1) where it converges;
 - the client passes its weights twice: as float32 for the cost, and normalized to a
   largest weight of 1 as 10-bit integers (``wfix``) for the sums.
 
@@ -24,7 +38,7 @@ import numpy as np
 
 from .fixed import SCALE_BIAS, TC, fix_backend
 from .fops import F, concat
-from .normal import UPPER, residuals
+from .normal import UPPER, project
 
 F_A = 13  # fraction bits of the projections a = x/z, b = y/z
 W_A = 14  # their magnitude bits: |a| < 2
@@ -36,6 +50,13 @@ W_W = 10  # scenes per algorithm converged as with 15 bits)
 W_COST = 24  # per-point costs, relative to the largest one: every float32 bit of it
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 HESS_BITS = 31  # to_float's integers are at most 2^31 in magnitude (float_system)
+F_ROT = 24  # fraction bits of the rotation entries: all of float32's for |r| in [1/2, 1]
+W_MAP = 26  # map coordinates, relative to the largest one's binade: 2 bits below float32's
+GUARD = 3  # R_ij X_j and J^T W r keep the partial products from GUARD bits below the
+# result's unit (fixed.mul_cut); J^T W J from H_GUARD bits below (3 left GN scenes
+# unconverged)
+H_GUARD = 5
+T_BITS = 12  # the translation's headroom over that binade (module doc: camera points)
 
 _U_COLS = [0, 2, 3, 4, 5]
 _V_COLS = [1, 2, 3, 4, 5]
@@ -43,8 +64,6 @@ _PAIRS = [(i, k) for i in range(5) for k in range(i, 5)]
 # Pair (1, 4) of either row, the (2, 5) entry, is a b c times the weight: minus pair (0, 2)
 # of ju and minus pair (0, 3) of jv, so each row computes 14 products (normal.py).
 _COMPUTED = [pair for pair in _PAIRS if pair != (1, 4)]
-_LEFT = [i for i, _ in _COMPUTED]
-_RIGHT = [k for _, k in _COMPUTED]
 _MIRRORED = (_COMPUTED.index((0, 2)), _COMPUTED.index((0, 3)))
 _ORDER = [_COMPUTED.index(p) if p != (1, 4) else len(_COMPUTED) for p in _PAIRS]
 
@@ -66,10 +85,34 @@ def _gather(fx, terms: TC, n: int, sources: tuple[list, list]) -> TC:
     return fx.concat_tc(rows, 0)
 
 
+def camera_points_fixed(R: F, t: F, world: F) -> F:
+    """X_c = R X + t (n, 3) as float32, computed in fixed point: the map as block floating
+    point (its largest exponent ew, W_MAP bits), R at the public scale 2^-F_ROT, t at the
+    map's scale with T_BITS more integer bits (saturating beyond), exact integer sums,
+    one rounding to float32 per coordinate.
+
+    Error bound, M the map's largest |coordinate| and v = 2^-(W_MAP - 1) M: the unit of
+    the map's magnitudes is at most v, so each product R_ij X_j is off by less than v (X
+    truncated) + 2^-F_ROT M = 2v (R truncated) + 3v (the product's floor and its partial
+    products below 2^-GUARD of its unit: 2 x 15 terms / 2^(GUARD + 1) < 2 units), t by
+    less than v: before the final rounding a coordinate is within 19 v, after it within
+    19 v + 2^-24 |X_c| (tests/test_loc_fixed.py). float32 is within a few 2^-24 (M + |t|).
+    """
+    fx = fix_backend(R)
+    ew = fx.block_emax(world)
+    rot = fx.from_float(R, SCALE_BIAS + 1, F_ROT + 1)  # magnitudes of 1.0 are 2^F_ROT
+    pts = fx.from_float(world, ew, W_MAP)
+    trans = fx.twos(fx.from_float(t, fx.exponent_plus(ew, T_BITS), W_MAP + T_BITS))
+    prods = fx.mul_cut(rot[None], pts[:, None, :], F_ROT, F_ROT - GUARD, W_MAP + 1)  # (n, 3, 3)
+    rx = fx.sum_tc(fx.stack_tc([fx.index_tc(prods, (slice(None), slice(None), j))
+                                for j in range(3)], 0))
+    return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_MAP)
+
+
 def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
     """(hess (21,), grad (6,), cost (), ek, ec, er), all integers: module doc. ``wfix`` is the
     (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words)."""
-    proj, err, inv_z = residuals(R, t, image, world)
+    proj, err, inv_z = project(camera_points_fixed(R, t, world), image)
     werr = err * weights
     cost_pt = werr * err
     fx = fix_backend(R)
@@ -93,15 +136,17 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
     jac = fx.stack([ju, jv], 1)                                   # (n, 2, 5)
     wjac = fx.mul(w[:, :, None], jac, F_W, jac.w)
     pair_w = 2 * jac.w - DROP
-    computed = fx.mul(wjac[:, :, _LEFT], jac[:, :, _RIGHT], DROP, pair_w)  # (n, 2, 14)
-    mirrored = fx.neg(fx.stack([computed[:, 0, _MIRRORED[0]], computed[:, 1, _MIRRORED[1]]], 1))
-    hpair = fx.twos(fx.stack([*(computed[:, :, p] for p in range(len(_COMPUTED))),
-                              mirrored], 2)[:, :, _ORDER])
+    computed = fx.concat_tc([fx.mul_cut(wjac[:, :, i:i + 1], jac[:, :, i:4 if i == 1 else 5],
+                                        DROP, DROP - H_GUARD, pair_w)
+                             for i in range(5)], 2)                    # (n, 2, 14)
+    mirrored = fx.neg_tc(fx.stack_tc([fx.index_tc(computed, (slice(None), row, [_MIRRORED[row]]))
+                                      for row in range(2)], 1))      # (n, 2, 1)
+    hpair = fx.index_tc(fx.concat_tc([computed, mirrored], 2), (slice(None), slice(None), _ORDER))
     entries = [e for e in UPPER if e != (0, 1)]
     hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
     hess = fx.sum_tc(hterms)
     wr = fx.mul(w, r, F_W, W_R)
-    gpart = fx.twos(fx.mul(jac, wr[:, :, None], DROP, jac.w + W_R - DROP))
+    gpart = fx.mul_cut(wr[:, :, None], jac, DROP, DROP - GUARD, jac.w + W_R - DROP)
     gentries = [(i,) for i in range(6)]
     gterms = _gather(fx, gpart, n, (_sources(_U_COLS, gentries), _sources(_V_COLS, gentries)))
     grad = fx.sum_tc(gterms)
