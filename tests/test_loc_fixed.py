@@ -251,8 +251,9 @@ def test_decoded_normal_equations_are_the_float64_ones(planar):
         values = sil_values(spec, nrm, pose, 0.0)
         got = MirrorBackend().run(spec, values)
         hess, grad, cost = _system64(values)
-        assert np.linalg.norm(_symmetric(got["hess"]) - hess) <= 2.0 ** -10 * np.linalg.norm(hess)
-        assert np.linalg.norm(got["grad"] - grad) <= 2.0 ** -10 * np.linalg.norm(grad)
+        # J^T W J from H_SHIFT bits shorter Jacobian magnitudes (10 of 13), J^T W r all 13
+        assert np.linalg.norm(_symmetric(got["hess"]) - hess) <= 2.0 ** -8 * np.linalg.norm(hess)
+        assert np.linalg.norm(got["grad"] - grad) <= 2.0 ** -11 * np.linalg.norm(grad)
         assert abs(float(got["cost"]) - cost) <= 1e-5 * cost  # float32 residuals (driver.py)
 
 
@@ -261,11 +262,11 @@ def _and_gates(n: int) -> int:
                                 == AND))
 
 
-def test_a_point_costs_at_most_33_5_k_and_gates():
+def test_a_point_costs_at_most_31_5_k_and_gates():
     """Per point of nx-sil (n = 4 to 8, 1/z depth-optimized): 42.2 k AND with float32
-    camera points and full products; camera points in fixed point and truncated
-    products make it 33.0 k."""
-    assert (_and_gates(8) - _and_gates(4)) / 4 <= 33_500
+    camera points and full products; camera points in fixed point, shorter J^T W J
+    operands and truncated products make it 31.1 k."""
+    assert (_and_gates(8) - _and_gates(4)) / 4 <= 31_500
 
 
 def test_weights_fixed_normalizes_to_the_largest():

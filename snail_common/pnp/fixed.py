@@ -140,6 +140,10 @@ class FixMirror:
         mag = total >> (drop + 1 - cut)
         return TC(np.where((x.s ^ y.s) == 1, -mag, mag), width + 1)
 
+    def shr(self, x: SM, k: int) -> SM:
+        """|x| >> k, k bits narrower: a truncation that costs no gates."""
+        return SM(x.s, x.m >> k, x.w - k)
+
     def add_const(self, x: SM, k: int, width: int) -> SM:
         """|x| + k for a non-negative x (its sign is kept)."""
         return SM(x.s, (x.m + k) & ((1 << width) - 1), width)
@@ -294,6 +298,9 @@ class FixCircuit:
         acc = _accumulate(b, terms, cut, n + y.w + 2 - cut)
         mag = sext(acc[..., drop + 1 - cut:], width + 1)
         return TC(integer.cond_negate(b, mag, b.xor(x.s, y.s)), width + 1)
+
+    def shr(self, x: SM, k: int) -> SM:
+        return SM(x.s, np.asarray(x.m)[..., k:], x.w - k)
 
     def add_const(self, x: SM, k: int, width: int) -> SM:
         return SM(x.s, integer.add(self.b, zext(x.m, width), const(k, width)), width)

@@ -18,11 +18,15 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   such a point degrades, never the cost); inverse depths and residuals as block floating
   point, each block sharing its largest exponent, which the circuit returns (``ec``,
   ``er``) so the client can scale the sums back;
-- the products of J^T W J and J^T W r are truncated (fixed.mul_cut, GUARD and H_GUARD),
-  each row of J^T W J's with one shared multiplicand. J^T W J from Jacobian magnitudes
-  3 bits shorter would save another 1.9 k AND per point and kept the client's solve as
-  accurate (2 x 1,000 scenes), but LM solving inside the circuit (x10 / /10 damping)
-  then ended at the 20-iteration cap on 2 of 1,000 scenes (seed 1) where it converges;
+- when the client solves, J^T W J from the Jacobian's magnitudes H_SHIFT bits shorter
+  (free: the low wires are left out), which makes its 38 products per point about a third
+  cheaper. J^T W J only sets how fast the iteration converges, J^T W r where it converges:
+  at 10 bits (against 13) 2 x 1,000 random scenes (seeds 1 and 2, LM and GN) were as
+  accurate as before and needed as many iterations; shift 4 lost a GN scene and left one
+  unconverged (seed 2), shift 5 lost two (seed 1). The in-circuit solve keeps all 13 bits:
+  with the shift, its LM (x10 / /10 damping) ended at the 20-iteration cap on 2 of 1,000
+  scenes (seed 1) where it converges. The products of J^T W J and J^T W r are truncated
+  (fixed.mul_cut, GUARD and H_GUARD), each row of J^T W J's with one shared multiplicand;
 - the client passes its weights twice: as float32 for the cost, and normalized to a
   largest weight of 1 as 10-bit integers (``wfix``) for the sums.
 
@@ -50,11 +54,11 @@ W_W = 10  # scenes per algorithm converged as with 15 bits)
 W_COST = 24  # per-point costs, relative to the largest one: every float32 bit of it
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 HESS_BITS = 31  # to_float's integers are at most 2^31 in magnitude (float_system)
+H_SHIFT = 3  # J^T W J's Jacobian magnitudes are this much shorter when the client solves
 F_ROT = 24  # fraction bits of the rotation entries: all of float32's for |r| in [1/2, 1]
 W_MAP = 26  # map coordinates, relative to the largest one's binade: 2 bits below float32's
 GUARD = 3  # R_ij X_j and J^T W r keep the partial products from GUARD bits below the
-# result's unit (fixed.mul_cut); J^T W J from H_GUARD bits below (3 left GN scenes
-# unconverged)
+# result's unit (fixed.mul_cut); J^T W J from H_GUARD bits below (3 lost GN scenes)
 H_GUARD = 5
 T_BITS = 12  # the translation's headroom over that binade (module doc: camera points)
 
@@ -109,9 +113,11 @@ def camera_points_fixed(R: F, t: F, world: F) -> F:
     return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_MAP)
 
 
-def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
+def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
+                           h_shift: int = 0):
     """(hess (21,), grad (6,), cost (), ek, ec, er), all integers: module doc. ``wfix`` is the
-    (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words)."""
+    (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words); J^T W J takes the
+    Jacobian's magnitudes ``h_shift`` bits shorter (H_SHIFT where the client solves)."""
     proj, err, inv_z = project(camera_points_fixed(R, t, world), image)
     werr = err * weights
     cost_pt = werr * err
@@ -134,10 +140,12 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix):
     ju = fx.stack([c, fx.neg(ac), fx.neg(ab), one_a, fx.neg(b)], 1)
     jv = fx.stack([c, fx.neg(bc), fx.neg(one_b), ab, a], 1)
     jac = fx.stack([ju, jv], 1)                                   # (n, 2, 5)
-    wjac = fx.mul(w[:, :, None], jac, F_W, jac.w)
+    jh = fx.shr(jac, h_shift)
+    wjac = fx.mul(w[:, :, None], jh, F_W, jh.w)
     pair_w = 2 * jac.w - DROP
-    computed = fx.concat_tc([fx.mul_cut(wjac[:, :, i:i + 1], jac[:, :, i:4 if i == 1 else 5],
-                                        DROP, DROP - H_GUARD, pair_w)
+    drop_h = DROP - 2 * h_shift
+    computed = fx.concat_tc([fx.mul_cut(wjac[:, :, i:i + 1], jh[:, :, i:4 if i == 1 else 5],
+                                        drop_h, drop_h - H_GUARD, pair_w)
                              for i in range(5)], 2)                    # (n, 2, 14)
     mirrored = fx.neg_tc(fx.stack_tc([fx.index_tc(computed, (slice(None), row, [_MIRRORED[row]]))
                                       for row in range(2)], 1))      # (n, 2, 1)
