@@ -183,7 +183,7 @@ class AsyncSecureRunner:
         self._lock = asyncio.Lock()
         self._prepared: dict[str, deque[_Prepared]] = {}
         self._expected: dict[str, int] = {}
-        self._fixed: dict[str, FixedInputs] = {}
+        self._fixed: dict[str, FixedInputs | None] = {}
         self._filling: set[asyncio.Task] = set()
         self.frame: tuple[bytes, str] | None = None  # see use_frame
 
@@ -219,10 +219,7 @@ class AsyncSecureRunner:
         """At least ``count`` invocations of ``circuit_id`` are coming: keep up to
         ``ahead`` of them prepared (garbled) before they are needed, with the labels of
         the ``fixed`` input bits they share already at the evaluator."""
-        if fixed is None:
-            self._fixed.pop(circuit_id, None)
-        else:
-            self._fixed[circuit_id] = fixed
+        self._fixed[circuit_id] = fixed
         queue = self._prepared.get(circuit_id, deque())
         for session in [x for x in queue if not FixedInputs.same(x.fixed, fixed)]:
             queue.remove(session)  # prepared for other shared bits: of no use now

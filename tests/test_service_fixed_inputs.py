@@ -118,7 +118,7 @@ def test_a_frames_inputs_but_the_pose_are_fixed_and_padding_keeps_them():
     nrm = Normalized(image=rng.normal(size=(4, 2)), world=rng.normal(size=(4, 3)),
                      weights=np.ones(4), axis_weights=np.ones(2))
     values = sil_values(spec, nrm, Pose(np.eye(3), np.array([0, 0, 3.0])), 0.0)
-    frame = frame_inputs(values)
+    frame = frame_inputs(spec, nrm)
     assert set(values) - set(frame) == {"R", "t"}
     mask, bits = shared_bits(iface, frame)
     np.testing.assert_array_equal(mask, frame_wires(iface))

@@ -64,15 +64,20 @@ def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> Value
     return values
 
 
-def frame_inputs(values: Values) -> Values:
-    """The inputs every invocation of a frame shares: all but the pose and damping."""
+def frame_inputs(spec: Spec, problem: Normalized) -> Values:
+    """The inputs every SIL invocation of a frame shares: all but the pose and damping."""
+    values = sil_values(spec, problem, Pose(np.eye(3), np.zeros(3)), 0.0)
     return {k: v for k, v in values.items() if k not in ITERATION_INPUTS}
+
+
+def _wires(iface: Interface, names: Callable[[str], bool]) -> np.ndarray:
+    """The input wires (bool mask) of the groups whose name ``names`` accepts."""
+    return np.repeat([names(g.name) for g in iface.inputs], [g.size for g in iface.inputs])
 
 
 def frame_wires(iface: Interface) -> np.ndarray:
     """The input wires of a frame's inputs (bool mask): those ``frame_inputs`` keeps."""
-    return np.repeat([g.name not in ITERATION_INPUTS for g in iface.inputs],
-                     [g.size for g in iface.inputs])
+    return _wires(iface, lambda name: name not in ITERATION_INPUTS)
 
 
 def shared_bits(iface: Interface, frame: Values) -> tuple[np.ndarray, np.ndarray]:
@@ -80,8 +85,7 @@ def shared_bits(iface: Interface, frame: Values) -> tuple[np.ndarray, np.ndarray
     placeholders = {g.name: np.zeros(g.shape) for g in iface.inputs
                     if g.name not in frame}
     bits = encode_inputs(iface, {**placeholders, **frame})[0]
-    mask = np.repeat([g.name in frame for g in iface.inputs],
-                     [g.size for g in iface.inputs])
+    mask = _wires(iface, frame.__contains__)
     return mask, bits & mask
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from snail_common.pnp.spec import MASKED, OWNER_PAD, Spec
 
-from .backends import Backend, Values, frame_inputs, sil_values
+from .backends import Backend, Values, frame_inputs
 from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
 from .mapfile import Frame, MapPoints
 from .pipeline import Localized, Options, solve_sil
@@ -158,8 +158,7 @@ def _localize(frame: Frame, published: PublishedMap, nrm: Normalized, spec: Spec
     backend.prepare(spec)
     pose0 = similarity.to_normalized(pose_from_rvec_tvec(frame.initial_pose.rvec,
                                                          frame.initial_pose.tvec))
-    backend.expect(spec, options.min_invocations,
-                   frame_inputs(sil_values(spec, nrm, pose0, 0.0)))
+    backend.expect(spec, options.min_invocations, frame_inputs(spec, nrm))
     first = backend.invocations
     pose, cost, iterations, converged, walls = solve_sil(spec, options, backend, nrm, pose0)
     backend.pad(spec, first + options.min_invocations)

@@ -138,8 +138,7 @@ def localize(problem: Problem, options: Options, backend: Backend,
     backend.prepare(spec)  # build or load now, not inside the first timed call
     pose0 = frame.to_normalized(pose_from_rvec_tvec(pose_vectors.rvec, pose_vectors.tvec))
     if options.mode == "sil":
-        backend.expect(spec, options.min_invocations,
-                       frame_inputs(sil_values(spec, nrm, pose0, 0.0)))
+        backend.expect(spec, options.min_invocations, frame_inputs(spec, nrm))
     else:
         backend.expect(spec, 1)
     first = backend.invocations
