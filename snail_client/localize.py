@@ -68,7 +68,6 @@ class GarbledBackend(CircuitBackend):
         super().__init__(self._secure_run, "garbled")
         self.secure = runner
         self.on_invocation: Callable[[], object] | None = None  # e.g. a progress bar
-        self._fixed: dict[str, FixedInputs | None] = {}  # per circuit, see expect
 
     def _secure_run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
         out = self.secure.run(circuit_id, bits)
@@ -81,7 +80,6 @@ class GarbledBackend(CircuitBackend):
         has their inputs (a padded frame makes at least ``count``), and the evaluator gets
         the labels of the ``frame``'s inputs with each session."""
         fixed = None if frame is None else FixedInputs(*shared_bits(interface(spec), frame))
-        self._fixed[spec.registry_id] = fixed
         self.secure.expect(spec.registry_id, count, fixed)
 
     def pad(self, spec: Spec, target: int) -> None:
@@ -89,7 +87,7 @@ class GarbledBackend(CircuitBackend):
         servers cannot tell them from real ones (the frame's inputs stay, so their labels
         went ahead as for a real run; the random pose makes the outputs noise)."""
         n_inputs = interface(spec).n_inputs
-        fixed = self._fixed.get(spec.registry_id)
+        fixed = self.secure.fixed(spec.registry_id)
         while self.invocations < target:
             noise = (np.frombuffer(os.urandom(n_inputs), np.uint8) & 1).astype(bool)
             if fixed is not None:

@@ -227,6 +227,10 @@ class AsyncSecureRunner:
         self._expected[circuit_id] = max(count, 0)
         self._fill(circuit_id)
 
+    def fixed(self, circuit_id: str) -> FixedInputs | None:
+        """The input bits ``expect`` last declared shared by ``circuit_id``'s runs."""
+        return self._fixed.get(circuit_id)
+
     async def run(self, circuit_id: str, input_bits: np.ndarray) -> np.ndarray:
         """Decoded output bits of one secure run; details in ``self.last``."""
         return (await self.invoke(circuit_id, input_bits)).outputs
@@ -491,6 +495,10 @@ class SecureRunner:
             await asyncio.sleep(0)
 
         self._complete(announce())
+
+    def fixed(self, circuit_id: str) -> FixedInputs | None:
+        """The input bits ``expect`` last declared shared by ``circuit_id``'s runs."""
+        return self._runner.fixed(circuit_id)
 
     def _complete(self, coro: Any) -> Any:
         """Run ``coro`` on this runner's loop. If it is interrupted (Ctrl-C), the tasks it

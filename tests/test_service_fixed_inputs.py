@@ -101,10 +101,13 @@ class _Recorder:
     """A secure runner that records what the backend asks of it."""
 
     def __init__(self, n_outputs: int) -> None:
-        self.fixed, self.runs, self.n_outputs = None, [], n_outputs
+        self.declared, self.runs, self.n_outputs = {}, [], n_outputs
 
     def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
-        self.fixed = fixed
+        self.declared[circuit_id] = fixed
+
+    def fixed(self, circuit_id: str) -> FixedInputs | None:
+        return self.declared.get(circuit_id)
 
     def run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
         self.runs.append(bits)
@@ -126,7 +129,7 @@ def test_a_frames_inputs_but_the_pose_are_fixed_and_padding_keeps_them():
     recorder = _Recorder(iface.n_outputs)
     backend = GarbledBackend(recorder)
     backend.expect(spec, 20, frame)
-    np.testing.assert_array_equal(recorder.fixed.bits, bits)
+    np.testing.assert_array_equal(recorder.fixed(spec.registry_id).bits, bits)
     backend.pad(spec, 3)
     assert len(recorder.runs) == 3
     for run in recorder.runs:
