@@ -79,6 +79,21 @@ def test_a_cached_schedule_stores_its_plan_and_loads_it(tmp_path, monkeypatch):
         np.testing.assert_array_equal(garbled_run(again, row), want)
 
 
+def test_the_compiling_process_stores_its_plan_for_the_next_load(tmp_path, monkeypatch):
+    """A server that compiled the circuit stores its plan: the next server to start loads
+    it instead of building it again."""
+    _, schedule = cache.cached("mult-v1", _mult, tmp_path)
+    first = plan_for(schedule)
+    entry = next(tmp_path.glob("mult-v1.*.arrays"))
+    assert list(entry.glob(f"plan*-v{PLAN_VERSION}-adjacent.json"))
+
+    import snail_common.circuit.plan as plan_module
+
+    monkeypatch.setattr(plan_module, "_build", lambda s, strided: pytest.fail("rebuilt"))
+    _, again = cache.load(entry)
+    _same(plan_for(again), first)
+
+
 def test_a_corrupt_stored_plan_is_rebuilt(tmp_path):
     cache.cached("mult-v1", _mult, tmp_path)
     entry = next(tmp_path.glob("mult-v1.*.arrays"))
