@@ -3,6 +3,8 @@ sidecar; bench CLI contract."""
 
 import json
 import os
+import threading
+import time
 import tracemalloc
 import zlib
 
@@ -107,6 +109,38 @@ def test_a_fresh_build_is_served_mapped_from_its_entry(tmp_path):
     for arr in (circuit.a, schedule.and_a, schedule.lin_terms):
         assert isinstance(arr.base, np.memmap) or isinstance(arr, np.memmap)
     assert schedule.plan_source.entry == tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.arrays"
+
+
+def _at_once(call, n=2):
+    """``call()`` from ``n`` threads started together; their results."""
+    barrier, results = threading.Barrier(n), []
+
+    def run():
+        barrier.wait()
+        results.append(call())
+
+    threads = [threading.Thread(target=run) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return results
+
+
+def test_concurrent_requests_for_a_missing_entry_build_it_once(tmp_path):
+    """Two servers starting on a cold cache: one builds, the other waits and loads (the
+    lock is per open file, so threads stand in for processes)."""
+    builds = []
+
+    def slow_build():
+        builds.append(1)
+        time.sleep(0.3)
+        return _adder()
+
+    results = _at_once(lambda: cached("adder-v1", slow_build, tmp_path))
+    assert len(builds) == 1
+    assert {c.content_hash() for c, _ in results} == {_adder().content_hash()}
+    assert not list(tmp_path.glob("*.lock"))  # removed once released
 
 
 def test_crc_check_maps_the_file_instead_of_copying_it(tmp_path):

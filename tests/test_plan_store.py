@@ -2,6 +2,8 @@
 built one, and a changed plan builder cannot pass for the stored version."""
 
 import hashlib
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -92,6 +94,33 @@ def test_the_compiling_process_stores_its_plan_for_the_next_load(tmp_path, monke
     monkeypatch.setattr(plan_module, "_build", lambda s, strided: pytest.fail("rebuilt"))
     _, again = cache.load(entry)
     _same(plan_for(again), first)
+
+
+def test_concurrent_first_uses_of_a_stored_schedule_build_its_plan_once(tmp_path):
+    """Two servers loading an entry without its plan: one builds and stores it, the other
+    waits and loads it (threads stand in for processes: the lock is per open file)."""
+    cache.cached("mult-v1", _mult, tmp_path)
+    entry = next(tmp_path.glob("mult-v1.*.arrays"))
+    schedules = [cache.load(entry)[1] for _ in range(2)]
+    builds, barrier, plans = [], threading.Barrier(2), []
+
+    def slow_build(schedule):
+        builds.append(1)
+        time.sleep(0.3)
+        return _build(schedule, False)
+
+    def first_use(schedule):
+        barrier.wait()
+        plans.append(schedule.plan_source.get("test", lambda: slow_build(schedule)))
+
+    threads = [threading.Thread(target=first_use, args=(s,)) for s in schedules]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(builds) == 1
+    _same(plans[0], plans[1])
+    assert not list(entry.glob("*.lock"))  # removed once released
 
 
 def test_a_corrupt_stored_plan_is_rebuilt(tmp_path):
