@@ -143,6 +143,21 @@ def test_concurrent_requests_for_a_missing_entry_build_it_once(tmp_path):
     assert not list(tmp_path.glob("*.lock"))  # removed once released
 
 
+def test_loading_an_existing_entry_waits_for_no_lock(tmp_path):
+    """Daemons starting together on a warm cache check the entry side by side: only a
+    missing entry is built one process at a time."""
+    cached("adder-v1", _adder, tmp_path)
+    path = tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.arrays"
+    done = []
+    with cache._exclusive(path.with_suffix(".lock")):  # as if another process held it
+        loader = threading.Thread(target=lambda: done.append(cached("adder-v1", _never,
+                                                                    tmp_path)))
+        loader.start()
+        loader.join(10)
+        assert done
+    loader.join()
+
+
 def test_crc_check_maps_the_file_instead_of_copying_it(tmp_path):
     """The CRC of a large file is read through mapped windows: no chunk is allocated (a
     16 MiB bytes object per read before), whatever the file's size."""

@@ -123,6 +123,21 @@ def test_concurrent_first_uses_of_a_stored_schedule_build_its_plan_once(tmp_path
     assert not list(entry.glob("*.lock"))  # removed once released
 
 
+def test_loading_a_stored_plan_waits_for_no_lock(tmp_path):
+    cache.cached("mult-v1", _mult, tmp_path)
+    entry = next(tmp_path.glob("mult-v1.*.arrays"))
+    plan_for(cache.load(entry)[1])  # stored
+    source, done = cache.StoredPlans(entry), []
+    kind = f"v{PLAN_VERSION}-adjacent"
+    with cache._exclusive(entry / f"plan1-{kind}.lock"):  # as if another process held it
+        loader = threading.Thread(target=lambda: done.append(
+            source.get(kind, lambda: pytest.fail("rebuilt"))))
+        loader.start()
+        loader.join(10)
+        assert done
+    loader.join()
+
+
 def test_a_corrupt_stored_plan_is_rebuilt(tmp_path):
     cache.cached("mult-v1", _mult, tmp_path)
     entry = next(tmp_path.glob("mult-v1.*.arrays"))

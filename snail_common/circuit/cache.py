@@ -7,7 +7,7 @@ the scheduler's version, so a changed circuit or scheduler never loads a stale e
 while an edit that changes neither (a comment, a refactoring) keeps the cache.
 
 An entry is a folder of ``.npy`` files, one per array, and ``meta.json`` (interface,
-content hash, a CRC-32 per file). Loading checks the CRCs with plain reads and then
+content hash, a CRC-32 per file). Loading checks the CRCs through mapped windows and then
 memory-maps the arrays read-only: a server that only runs the schedule never touches
 the netlist (a gigabyte at n = 256), and nothing is copied or hashed again (loading the
 n = 256 circuit took 6.6 s of reads, copies and page faults from an npz).
@@ -16,8 +16,8 @@ The cache is bounded (``configure``; default 20 GiB): after an entry is written,
 least recently used others are removed until the entries fit. A load marks an entry used
 (its folder's mtime). An entry another process has mapped survives its removal until
 unmapped (POSIX unlink semantics); a removed entry is rebuilt when next asked for.
-Processes that ask for an entry or a plan being built wait for it (a lock file beside
-the entry, and one per plan in it) instead of building it too.
+Processes that find an entry or a plan missing build it one at a time (a lock file beside
+the entry, and one per plan in it): the others wait for it and load it.
 """
 
 from __future__ import annotations
@@ -193,15 +193,24 @@ class StoredPlans:
 
     def get(self, kind: str, build: Callable[[], plan_store.Plan]) -> plan_store.Plan:
         name = f"plan{plan_store.FORMAT}-{kind}"
+        plan = self._stored(name)
+        if plan is not None:
+            return plan
         with _exclusive(self.entry / f"{name}.lock"):
-            try:
-                return plan_store.decode(self._load(name))
-            except (OSError, ValueError, KeyError, TypeError):
-                pass  # absent, partly written or corrupt: build it
+            plan = self._stored(name)  # stored by another process while this one waited
+            if plan is not None:
+                return plan
             plan = build()
             with contextlib.suppress(OSError):
                 self._save(name, plan_store.encode(plan))
         return plan
+
+    def _stored(self, name: str) -> plan_store.Plan | None:
+        """The stored plan ``name``, or None if it is absent, partly written or corrupt."""
+        try:
+            return plan_store.decode(self._load(name))
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
 
     def _load(self, name: str) -> plan_store.StoredPlan:
         crcs = json.loads((self.entry / f"{name}.json").read_bytes())
@@ -227,18 +236,15 @@ def cached(name: str, build: Callable[[], Circuit],
     """The compiled circuit called ``name`` (which must encode every build parameter and
     the builder's version), built and scheduled on first use, loaded from disk afterwards."""
     path = _path(name, directory)
+    loaded = _load_entry(path)  # unlocked: daemons loading one entry check it side by side
+    if loaded is not None:
+        return loaded
     with contextlib.suppress(OSError):  # for the lock; save() says why it cannot store
         path.parent.mkdir(parents=True, exist_ok=True)
     with _exclusive(path.with_suffix(".lock")):
-        if path.exists():
-            try:
-                loaded = load(path)
-                with contextlib.suppress(OSError):
-                    os.utime(path)  # used now: the last to be evicted
-                return loaded
-            except (OSError, ValueError, KeyError, TypeError) as exc:
-                _warn("cache_entry_rebuilt", entry=path.name, reason=str(exc))
-                shutil.rmtree(path, ignore_errors=True)  # corrupt or stale: rebuild
+        loaded = _load_entry(path)  # built by another process while this one waited
+        if loaded is not None:
+            return loaded
         circuit = build()
         schedule = schedule_circuit(circuit)
         try:
@@ -253,6 +259,22 @@ def cached(name: str, build: Callable[[], Circuit],
             return circuit, schedule
         evict(path.parent, int(_settings["max_bytes"]), keep=path)
     return circuit, schedule
+
+
+def _load_entry(path: Path) -> tuple[Circuit, Schedule] | None:
+    """The entry ``path``, marked used; None if there is none or it is unusable (then
+    it is removed, to be rebuilt)."""
+    if not path.exists():
+        return None
+    try:
+        loaded = load(path)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        _warn("cache_entry_rebuilt", entry=path.name, reason=str(exc))
+        shutil.rmtree(path, ignore_errors=True)  # corrupt or stale format: rebuild
+        return None
+    with contextlib.suppress(OSError):
+        os.utime(path)  # used now: the last to be evicted
+    return loaded
 
 
 def entry_bytes(entry: Path) -> int:
