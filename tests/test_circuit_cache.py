@@ -3,6 +3,10 @@ sidecar; bench CLI contract."""
 
 import json
 import os
+import threading
+import time
+import tracemalloc
+import zlib
 
 import numpy as np
 import pytest
@@ -89,12 +93,87 @@ def test_corrupt_cache_file_is_detected_and_rebuilt(tmp_path):
 def test_a_loaded_circuit_is_mapped_read_only_and_keeps_its_hash(tmp_path):
     """Servers map the arrays instead of reading them (the netlist is never touched),
     so nothing may write into them; the stored hash is the built circuit's."""
-    built, _ = cached("adder-v1", _adder, tmp_path)
+    cached("adder-v1", _adder, tmp_path)
     circuit, schedule = load(tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.arrays")
-    assert circuit._hash == built.content_hash()
+    assert circuit._hash == _adder().content_hash()
     for arr in (circuit.a, schedule.and_a, schedule.lin_terms):
         assert isinstance(arr.base, np.memmap) or isinstance(arr, np.memmap)
         assert not arr.flags.writeable
+
+
+def test_a_fresh_build_is_served_mapped_from_its_entry(tmp_path):
+    """The compiling server drops the built arrays for the entry it wrote (they are not
+    held twice, and its plans are stored there: see test_plan_store)."""
+    circuit, schedule = cached("adder-v1", _adder, tmp_path)
+    assert circuit.content_hash() == _adder().content_hash()
+    for arr in (circuit.a, schedule.and_a, schedule.lin_terms):
+        assert isinstance(arr.base, np.memmap) or isinstance(arr, np.memmap)
+    assert schedule.plan_source.entry == tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.arrays"
+
+
+def _at_once(call, n=2):
+    """``call()`` from ``n`` threads started together; their results."""
+    barrier, results = threading.Barrier(n), []
+
+    def run():
+        barrier.wait()
+        results.append(call())
+
+    threads = [threading.Thread(target=run) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return results
+
+
+def test_concurrent_requests_for_a_missing_entry_build_it_once(tmp_path):
+    """Two servers starting on a cold cache: one builds, the other waits and loads (the
+    lock is per open file, so threads stand in for processes)."""
+    builds = []
+
+    def slow_build():
+        builds.append(1)
+        time.sleep(0.3)
+        return _adder()
+
+    results = _at_once(lambda: cached("adder-v1", slow_build, tmp_path))
+    assert len(builds) == 1
+    assert {c.content_hash() for c, _ in results} == {_adder().content_hash()}
+    assert not list(tmp_path.glob("*.lock"))  # removed once released
+
+
+def test_loading_an_existing_entry_waits_for_no_lock(tmp_path):
+    """Daemons starting together on a warm cache check the entry side by side: only a
+    missing entry is built one process at a time."""
+    cached("adder-v1", _adder, tmp_path)
+    path = tmp_path / f"adder-v1.s{SCHEDULE_VERSION}.arrays"
+    done = []
+    with cache._exclusive(path.with_suffix(".lock")):  # as if another process held it
+        loader = threading.Thread(target=lambda: done.append(cached("adder-v1", _never,
+                                                                    tmp_path)))
+        loader.start()
+        loader.join(10)
+        assert done
+    loader.join()
+
+
+def test_crc_check_maps_the_file_instead_of_copying_it(tmp_path):
+    """The CRC of a large file is read through mapped windows: no chunk is allocated (a
+    16 MiB bytes object per read before), whatever the file's size."""
+    data = np.random.default_rng(1).integers(0, 256, 40 << 20, np.uint8).tobytes()[:-123]
+    file = tmp_path / "big.npy"
+    file.write_bytes(data)
+    (tmp_path / "empty.npy").write_bytes(b"")
+    tracemalloc.start()
+    try:
+        got = cache._crc(file)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert got == zlib.crc32(data)
+    assert peak < 1 << 20
+    assert cache._crc(tmp_path / "empty.npy") == 0
 
 
 def test_a_new_scheduler_never_loads_a_stale_schedule(tmp_path, monkeypatch):

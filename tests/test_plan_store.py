@@ -2,6 +2,8 @@
 built one, and a changed plan builder cannot pass for the stored version."""
 
 import hashlib
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -77,6 +79,63 @@ def test_a_cached_schedule_stores_its_plan_and_loads_it(tmp_path, monkeypatch):
     bits = np.random.default_rng(3).random((2, again.n_inputs)) < 0.5
     for row, want in zip(bits, evaluate_bits(again, bits)):
         np.testing.assert_array_equal(garbled_run(again, row), want)
+
+
+def test_the_compiling_process_stores_its_plan_for_the_next_load(tmp_path, monkeypatch):
+    """A server that compiled the circuit stores its plan: the next server to start loads
+    it instead of building it again."""
+    _, schedule = cache.cached("mult-v1", _mult, tmp_path)
+    first = plan_for(schedule)
+    entry = next(tmp_path.glob("mult-v1.*.arrays"))
+    assert list(entry.glob(f"plan*-v{PLAN_VERSION}-adjacent.json"))
+
+    import snail_common.circuit.plan as plan_module
+
+    monkeypatch.setattr(plan_module, "_build", lambda s, strided: pytest.fail("rebuilt"))
+    _, again = cache.load(entry)
+    _same(plan_for(again), first)
+
+
+def test_concurrent_first_uses_of_a_stored_schedule_build_its_plan_once(tmp_path):
+    """Two servers loading an entry without its plan: one builds and stores it, the other
+    waits and loads it (threads stand in for processes: the lock is per open file)."""
+    cache.cached("mult-v1", _mult, tmp_path)
+    entry = next(tmp_path.glob("mult-v1.*.arrays"))
+    schedules = [cache.load(entry)[1] for _ in range(2)]
+    builds, barrier, plans = [], threading.Barrier(2), []
+
+    def slow_build(schedule):
+        builds.append(1)
+        time.sleep(0.3)
+        return _build(schedule, False)
+
+    def first_use(schedule):
+        barrier.wait()
+        plans.append(schedule.plan_source.get("test", lambda: slow_build(schedule)))
+
+    threads = [threading.Thread(target=first_use, args=(s,)) for s in schedules]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(builds) == 1
+    _same(plans[0], plans[1])
+    assert not list(entry.glob("*.lock"))  # removed once released
+
+
+def test_loading_a_stored_plan_waits_for_no_lock(tmp_path):
+    cache.cached("mult-v1", _mult, tmp_path)
+    entry = next(tmp_path.glob("mult-v1.*.arrays"))
+    plan_for(cache.load(entry)[1])  # stored
+    source, done = cache.StoredPlans(entry), []
+    kind = f"v{PLAN_VERSION}-adjacent"
+    with cache._exclusive(entry / f"plan1-{kind}.lock"):  # as if another process held it
+        loader = threading.Thread(target=lambda: done.append(
+            source.get(kind, lambda: pytest.fail("rebuilt"))))
+        loader.start()
+        loader.join(10)
+        assert done
+    loader.join()
 
 
 def test_a_corrupt_stored_plan_is_rebuilt(tmp_path):
