@@ -10,8 +10,22 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   far out, so the map enters as block floating point (one exponent for all its
   coordinates) and t at the same scale with T_BITS more integer bits: it saturates only
   for a camera 2^11 map radii away, where no point spread could be resolved anyway;
-- float32 as before: projections, residuals and the cost, which decides acceptance and
-  must resolve relative changes of 1e-4 (driver.py);
+- float32 as before: 1/z, the projections and the residuals r = a - u (whose float32
+  rounding of a, about 2^-24 |a| against residuals of 1e-3, is what sets the cost's
+  precision: relative errors of ~1e-5, driver.py's cost_tol is 1e-4);
+- the cost in fixed point: w r^2 with r as block floating point at W_RC = 24 bits (all
+  of the largest residual's float32 bits; ``er``), w the 16-bit ``wfix``, w r kept to 24
+  bits and times r truncated 2^D_COST below the per-point cost's unit of 2^-32 of the
+  largest, then an exact sum: 1.9 k AND per point against 4.1 k for float32 products
+  and a block fixed-point sum. Truncating r loses less than 2 r u of r^2 (u its unit,
+  at most 2^(1 - W_RC) of the largest |r|), w r at most r u, the product 3 of its units:
+  with equal weights the cost is within 2^(2 - W_RC) sqrt(2n) of the exact sum of the
+  float32 residuals' squares (3e-6 at n = 256; measured: 1e-7; tests/test_loc_fixed.py),
+  far below the residuals' own float32 error. It is the cost of the weights rounded to 16
+  bits relative to the largest (relative error below 2^-16 / (w / w_max), none where all
+  weights are equal, as without lens distortion and with fx = fy): the cost the result
+  reports and the accept/reject decisions, which compare two costs of the same weights;
+  the result's reprojection RMS is computed from the final pose in float64, not from it;
 - fixed point: the Jacobian, J^T W J and J^T W r, at about 13 significant bits, the
   precision normal.py's narrow floats already had. Projections a, b enter at a public
   scale (2^-13, saturating at |a| = 2, 63 degrees off the optical axis: only the step of
@@ -27,13 +41,17 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   with the shift, its LM (x10 / /10 damping) ended at the 20-iteration cap on 2 of 1,000
   scenes (seed 1) where it converges. The products of J^T W J and J^T W r are truncated
   (fixed.mul_cut, GUARD and H_GUARD), each row of J^T W J's with one shared multiplicand;
-- the client passes its weights twice: as float32 for the cost, and normalized to a
-  largest weight of 1 as 10-bit integers (``wfix``) for the sums.
+- the client passes its weights normalized to a largest weight of 1 as 16-bit integers
+  (``wfix``, 2^F_W for 1): the cost takes all 16 bits, W J and J^T W r the top W_WS = 10
+  (a free truncation; w r is the cost's, shortened). The float32 weights stay an input
+  (unused by this circuit; the client decodes with their largest, ``weight_unit``).
 
 Outputs are integers: ``hess`` (21, packed as normal.UPPER) at scale
 2^(s_i + s_k + DROP), ``grad`` (6) at 2^(s_i + sr + DROP), where s is the column scale
 (translation columns: the inverse depths' block scale; rotation columns: 2^-F_A) and sr
-the residuals' block scale (``scales`` computes them; fixed_io.py decodes).
+the residuals' block scale (``scales`` computes them; ``decode``), and ``cost`` at
+2^(D_COST + 2 src), src the residuals' block scale at W_RC bits; all three are of the
+normalized weights (times the largest weight in the client's units).
 """
 
 from __future__ import annotations
@@ -48,10 +66,13 @@ F_A = 13  # fraction bits of the projections a = x/z, b = y/z
 W_A = 14  # their magnitude bits: |a| < 2
 EMAX_A = W_A + SCALE_BIAS - F_A  # the float exponent at the top of that scale
 W_C = 15  # inverse depths, relative to the largest one
-W_R = 15  # residuals, relative to the largest one
-F_W = 9  # weights: the largest is 2^9 (they scale the sums, not the cost: 1,000 random
-W_W = 10  # scenes per algorithm converged as with 15 bits)
-W_COST = 24  # per-point costs, relative to the largest one: every float32 bit of it
+W_R = 15  # residuals in J^T W r, relative to the largest one
+W_RC = 24  # residuals in the cost: every float32 bit of the largest
+F_W = 15  # weights: the largest is 2^15, for the cost (module doc: the cost)
+W_W = 16
+W_WS = 10  # their top bits scale the sums (1,000 random scenes per algorithm converged as
+# with 15 bits)
+D_COST = 16  # bits dropped by w r times r: a per-point cost is within 2^-28 of the largest
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 HESS_BITS = 31  # to_float's integers are at most 2^31 in magnitude (float_system)
 H_SHIFT = 3  # J^T W J's Jacobian magnitudes are this much shorter when the client solves
@@ -115,24 +136,24 @@ def camera_points_fixed(R: F, t: F, world: F) -> F:
 
 def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
                            h_shift: int = 0):
-    """(hess (21,), grad (6,), cost (), ek, ec, er), all integers: module doc. ``wfix`` is the
-    (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words); J^T W J takes the
-    Jacobian's magnitudes ``h_shift`` bits shorter (H_SHIFT where the client solves)."""
+    """(hess (21,), grad (6,), cost (), ec, er), all integers: module doc. ``wfix`` is the
+    (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words), which the cost
+    uses too: ``weights`` is not read. J^T W J takes the Jacobian's magnitudes ``h_shift``
+    bits shorter (H_SHIFT where the client solves)."""
     proj, err, inv_z = project(camera_points_fixed(R, t, world), image)
-    werr = err * weights
-    cost_pt = werr * err
     fx = fix_backend(R)
-    ek = fx.block_emax(cost_pt)  # the sum: exact integers under one exponent, log depth
-    cost = fx.sum_tc(fx.twos(fx.from_float(concat([cost_pt[:, 0], cost_pt[:, 1]]), ek,
-                                           W_COST)))
     n = len(proj)
     a = fx.from_float(proj[:, 0], EMAX_A, W_A)
     b = fx.from_float(proj[:, 1], EMAX_A, W_A)
     ec = fx.block_emax(inv_z)
     c = fx.from_float(inv_z, ec, W_C)
     er = fx.block_emax(err)
-    r = fx.from_float(err, er, W_R)
-    w = fx.unsigned(wfix, W_W)
+    rc = fx.from_float(err, er, W_RC)
+    wc = fx.unsigned(wfix, W_W)
+    w = fx.shr(wc, W_W - W_WS)
+    wrc = fx.mul(wc, rc, F_W, W_RC)                                # < 2^W_RC: w <= 2^F_W
+    cost_pt = fx.mul_cut(wrc, rc, D_COST, D_COST - GUARD, 2 * W_RC - D_COST)
+    cost = fx.sum_tc(fx.concat_tc([fx.index_tc(cost_pt, (slice(None), k)) for k in range(2)], 0))
     ac, bc = fx.mul(a, c, F_A, W_C + 1), fx.mul(b, c, F_A, W_C + 1)
     ab = fx.mul(a, b, F_A, W_A + 1)
     one_a = fx.add_const(fx.mul(a, a, F_A, W_A + 1), 1 << F_A, W_A + 2)
@@ -141,7 +162,7 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
     jv = fx.stack([c, fx.neg(bc), fx.neg(one_b), ab, a], 1)
     jac = fx.stack([ju, jv], 1)                                   # (n, 2, 5)
     jh = fx.shr(jac, h_shift)
-    wjac = fx.mul(w[:, :, None], jh, F_W, jh.w)
+    wjac = fx.mul(w[:, :, None], jh, W_WS - 1, jh.w)
     pair_w = 2 * jac.w - DROP
     drop_h = DROP - 2 * h_shift
     computed = fx.concat_tc([fx.mul_cut(wjac[:, :, i:i + 1], jh[:, :, i:4 if i == 1 else 5],
@@ -153,13 +174,13 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
     entries = [e for e in UPPER if e != (0, 1)]
     hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
     hess = fx.sum_tc(hterms)
-    wr = fx.mul(w, r, F_W, W_R)
+    wr = fx.shr(wrc, W_RC - W_R)  # w r at W_R bits: floors compose
     gpart = fx.mul_cut(wr[:, :, None], jac, DROP, DROP - GUARD, jac.w + W_R - DROP)
     gentries = [(i,) for i in range(6)]
     gterms = _gather(fx, gpart, n, (_sources(_U_COLS, gentries), _sources(_V_COLS, gentries)))
     grad = fx.sum_tc(gterms)
     hess = fx.insert_zero(hess, UPPER.index((0, 1)))               # ju, jv never both
-    return hess, grad, cost, ek, ec, er
+    return hess, grad, cost, ec, er
 
 
 def _block_scale(emax, width: int) -> float:
@@ -183,19 +204,25 @@ def weights_fixed(weights: np.ndarray) -> np.ndarray:
     return np.rint(w / top * (1 << F_W)).astype(np.uint16)
 
 
+def weight_unit(weights: np.ndarray) -> float:
+    """What ``weights_fixed`` divided the weights by (relative to 1): the sums and the cost
+    times it are in the units of the float circuit."""
+    return float(np.max(weights)) if np.size(weights) else 0.0
+
+
 def decode(weights: np.ndarray, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The circuit's integer outputs as float64 J^T W J (packed), J^T W r and the cost, in
     the units of the float circuit (weights as given, not normalized)."""
     col, sr = scales(int(out["ec"]), int(out["er"]))
-    top = float(np.max(weights)) if np.size(weights) else 0.0
+    top = weight_unit(weights)
     rows, cols = np.array(UPPER).T
     hess = np.asarray(out["hess"], np.float64) * np.exp2(col[rows] + col[cols] + DROP) * top
     grad = np.asarray(out["grad"], np.float64) * np.exp2(col + sr + DROP) * top
-    cost = float(out["cost"]) * 2.0 ** _block_scale(out["ek"], W_COST)
+    cost = float(out["cost"]) * 2.0 ** (D_COST + 2 * _block_scale(out["er"], W_RC)) * top
     return {"hess": hess, "grad": grad, "cost": np.float64(cost)}
 
 
-def float_system(R: F, hess, grad, cost, ek, ec, er):
+def float_system(R: F, hess, grad, cost, ec, er):
     """For a solve inside the circuit: the integer sums as float32 (hess, grad, cost) and
     the function taking the solution y of hess y = -grad to the step in the float
     circuit's units. The solve needs no scales: with H = D H' D and g = s D g' (D the
@@ -208,7 +235,8 @@ def float_system(R: F, hess, grad, cost, ek, ec, er):
     hess_f = fx.scale2(hess_f, -HESS_BITS)
     grad_f, drop_g = fx.to_float(grad)
     cost_f, drop_k = fx.to_float(cost)
-    cost_f = fx.scale2(cost_f, fx.exponent_offset(ek, None, drop_k - W_COST - SCALE_BIAS))
+    cost_f = fx.scale2(cost_f, fx.exponent_offset(er, None, drop_k + D_COST - W_RC - SCALE_BIAS))
+    cost_f = fx.scale2(cost_f, fx.exponent_offset(er, None, -W_RC - SCALE_BIAS))
     shift = drop_g - drop_h - HESS_BITS
     to_translation = fx.exponent_offset(er, ec, W_C - W_R + shift)        # sr - sc
     to_rotation = fx.exponent_offset(er, None, F_A - W_R - SCALE_BIAS + shift)   # sr + F_A

@@ -50,15 +50,15 @@ def input_shapes(algorithm: str, n: int, solver: str = "ldlt",
 ITERATION_INPUTS = ("R", "t", "lam")
 # (dtype, bits) of the inputs that are not float32, and the fixed-point circuit's outputs
 INPUT_TYPES = {"wfix": ("uint16", W_W)}
-FIXED_OUTPUT_TYPES = {"hess": "int64", "grad": "int64", "cost": "int64", "ek": "uint8",
-                      "ec": "uint8", "er": "uint8"}
+FIXED_OUTPUT_TYPES = {"hess": "int64", "grad": "int64", "cost": "int64", "ec": "uint8",
+                      "er": "uint8"}
 
 
 OUTPUT_SHAPES = {"step": (6,), "cost": ()}
 # J^T W J packed as normal.UPPER, J^T W r and the cost
 NORMAL_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": ()}
 # the same in fixed point, with the block exponents that scale them (normal_fixed.py)
-FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ek": (), "ec": (), "er": ()}
+FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ec": (), "er": ()}
 
 Solver = Callable[[F, F], F]
 
@@ -87,9 +87,9 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     if solver == CLIENT and arith == "fixed":
-        hess, grad, cost, ek, ec, er = _fixed_sums(inputs, H_SHIFT)
+        hess, grad, cost, ec, er = _fixed_sums(inputs, H_SHIFT)
         return {"hess": hess, "grad": grad, "cost": cost,
-                **{name: TC(e, 8) for name, e in (("ek", ek), ("ec", ec), ("er", er))}}
+                **{name: TC(e, 8) for name, e in (("ec", ec), ("er", er))}}
     if solver == CLIENT:
         hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
                                             inputs["world"], inputs["weights"])
