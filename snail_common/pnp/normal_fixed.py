@@ -10,18 +10,21 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   far out, so the map enters as block floating point (one exponent for all its
   coordinates) and t at the same scale with T_BITS more integer bits: it saturates only
   for a camera 2^11 map radii away, where no point spread could be resolved anyway;
-- float32 as before: 1/z, the projections and the residuals r = a - u (whose float32
-  rounding of a, about 2^-24 |a| against residuals of 1e-3, is what sets the cost's
-  precision: relative errors of ~1e-5, driver.py's cost_tol is 1e-4);
+- float32: the projections a = x/z, b = y/z, each one correctly rounded division (two
+  divisions cost 0.3 k AND per point less than 1/z and two products, and round once),
+  and the residuals r = a - u, whose float32 rounding of a, about 2^-24 |a| against
+  residuals of 1e-3, sets the cost's precision (relative errors of ~1e-5; driver.py's
+  cost_tol is 1e-4);
 - the cost in fixed point: w r^2 with r as block floating point at W_RC = 24 bits (all
   of the largest residual's float32 bits; ``er``), w the 16-bit ``wfix``, w r kept to 24
-  bits and times r truncated 2^D_COST below the per-point cost's unit of 2^-32 of the
-  largest, then an exact sum: 1.9 k AND per point against 4.1 k for float32 products
-  and a block fixed-point sum. Truncating r loses less than 2 r u of r^2 (u its unit,
-  at most 2^(1 - W_RC) of the largest |r|), w r at most r u, the product 3 of its units:
-  with equal weights the cost is within 2^(2 - W_RC) sqrt(2n) of the exact sum of the
-  float32 residuals' squares (3e-6 at n = 256; measured: 1e-7; tests/test_loc_fixed.py),
-  far below the residuals' own float32 error. It is the cost of the weights rounded to 16
+  bits (truncated: fixed.mul_cut_sm) and times r truncated 2^D_COST below the per-point
+  cost's unit of 2^-32 of the largest, then an exact sum: 1.7 k AND per point against
+  4.1 k for float32 products and a block fixed-point sum. Truncating r loses less than
+  2 w r u of w r^2 (u its unit, at most 2^(1 - W_RC) of the largest |r|), w r less than
+  2 r u, the product 3 of its units: with equal weights the cost is within
+  2^(3 - W_RC) sqrt(2n) + 6n 2^(D_COST + 2 - 2 W_RC) below the exact sum of the float32
+  residuals' squares (1.2e-5 at n = 256; measured: at most 3e-7; tests/test_loc_fixed.py),
+  below the residuals' own float32 error. It is the cost of the weights rounded to 16
   bits relative to the largest (relative error below 2^-16 / (w / w_max), none where all
   weights are equal, as without lens distortion and with fx = fy): the cost the result
   reports and the accept/reject decisions, which compare two costs of the same weights;
@@ -31,7 +34,10 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   scale (2^-13, saturating at |a| = 2, 63 degrees off the optical axis: only the step of
   such a point degrades, never the cost); inverse depths and residuals as block floating
   point, each block sharing its largest exponent, which the circuit returns (``ec``,
-  ``er``) so the client can scale the sums back;
+  ``er``) so the client can scale the sums back. The inverse depths need no float
+  division: fixed.recip_block divides 2^(W_C + 23) by z's significand in W_C + 1
+  non-restoring steps and shifts by z's exponent above the block's smallest, the floor of
+  the exact 1/z (0.5 k AND per point against 0.9 k for a float32 1/z converted);
 - when the client solves, J^T W J from the Jacobian's magnitudes H_SHIFT bits shorter
   (free: the low wires are left out), which makes its 38 products per point about a third
   cheaper. J^T W J only sets how fast the iteration converges, J^T W r where it converges:
@@ -60,7 +66,7 @@ import numpy as np
 
 from .fixed import SCALE_BIAS, TC, fix_backend
 from .fops import F, concat
-from .normal import UPPER, project
+from .normal import UPPER
 
 F_A = 13  # fraction bits of the projections a = x/z, b = y/z
 W_A = 14  # their magnitude bits: |a| < 2
@@ -140,18 +146,19 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
     (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words), which the cost
     uses too: ``weights`` is not read. J^T W J takes the Jacobian's magnitudes ``h_shift``
     bits shorter (H_SHIFT where the client solves)."""
-    proj, err, inv_z = project(camera_points_fixed(R, t, world), image)
+    xc = camera_points_fixed(R, t, world)
+    proj = xc[:, 0:2] / xc[:, 2:3]  # a = x/z, b = y/z correctly rounded
+    err = proj - image
     fx = fix_backend(R)
     n = len(proj)
     a = fx.from_float(proj[:, 0], EMAX_A, W_A)
     b = fx.from_float(proj[:, 1], EMAX_A, W_A)
-    ec = fx.block_emax(inv_z)
-    c = fx.from_float(inv_z, ec, W_C)
+    c, ec = fx.recip_block(xc[:, 2], W_C)
     er = fx.block_emax(err)
     rc = fx.from_float(err, er, W_RC)
     wc = fx.unsigned(wfix, W_W)
     w = fx.shr(wc, W_W - W_WS)
-    wrc = fx.mul(wc, rc, F_W, W_RC)                                # < 2^W_RC: w <= 2^F_W
+    wrc = fx.mul_cut_sm(rc, wc, F_W, F_W - GUARD, W_RC)           # < 2^W_RC: w <= 2^F_W
     cost_pt = fx.mul_cut(wrc, rc, D_COST, D_COST - GUARD, 2 * W_RC - D_COST)
     cost = fx.sum_tc(fx.concat_tc([fx.index_tc(cost_pt, (slice(None), k)) for k in range(2)], 0))
     ac, bc = fx.mul(a, c, F_A, W_C + 1), fx.mul(b, c, F_A, W_C + 1)
