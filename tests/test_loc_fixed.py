@@ -370,9 +370,10 @@ def test_decoded_normal_equations_are_the_float64_ones(planar):
         values = sil_values(spec, nrm, pose, 0.0)
         got = MirrorBackend().run(spec, values)
         hess, grad, cost = _system64(values)
-        # J^T W J from H_SHIFT bits shorter Jacobian magnitudes (10 of 13), J^T W r all 13
+        # J^T W J from H_SHIFT bits shorter Jacobian magnitudes (10 of 13), J^T W r from all
+        # 13 and the residuals at W_R = 13 bits of the largest (truncated: a shrink of ~2^-12)
         assert np.linalg.norm(_symmetric(got["hess"]) - hess) <= 2.0 ** -8 * np.linalg.norm(hess)
-        assert np.linalg.norm(got["grad"] - grad) <= 2.0 ** -11 * np.linalg.norm(grad)
+        assert np.linalg.norm(got["grad"] - grad) <= 2.0 ** -10 * np.linalg.norm(grad)
         assert abs(float(got["cost"]) - cost) <= 1e-5 * cost  # float32 residuals (driver.py)
 
 
@@ -381,14 +382,15 @@ def _and_gates(n: int) -> int:
                                 == AND))
 
 
-def test_a_point_costs_at_most_26_k_and_gates():
+def test_a_point_costs_at_most_25_8_k_and_gates():
     """Per point of nx-sil above SHALLOW_POINTS (n = 36 to 40): 29.0 k AND with float32
     per-point costs, 1/z and x (1/z); 26.0 k with the cost in fixed point, x/z, y/z
-    divided and 1/z as block fixed point (recip_block). Up to 32 points, where divisions
-    are depth-optimized (n = 4 to 8), 31.1 k then and 31.6 k now: two shallow divisions
-    cost more than one and two products, for a shorter path."""
-    assert (_and_gates(40) - _and_gates(36)) / 4 <= 26_500
-    assert (_and_gates(8) - _and_gates(4)) / 4 <= 32_000
+    divided and 1/z as block fixed point (recip_block), 25.6 k with J^T W r's residuals
+    at 13 bits (W_R). Up to 32 points, where divisions are depth-optimized (n = 4 to 8),
+    31.1 k then and 31.2 k now: two shallow divisions cost more than one and two
+    products, for a shorter path."""
+    assert (_and_gates(40) - _and_gates(36)) / 4 <= 25_800
+    assert (_and_gates(8) - _and_gates(4)) / 4 <= 31_500
 
 
 def test_weights_fixed_normalizes_to_the_largest():

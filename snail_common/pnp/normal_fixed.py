@@ -30,7 +30,10 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   reports and the accept/reject decisions, which compare two costs of the same weights;
   the result's reprojection RMS is computed from the final pose in float64, not from it;
 - fixed point: the Jacobian, J^T W J and J^T W r, at about 13 significant bits, the
-  precision normal.py's narrow floats already had. Projections a, b enter at a public
+  precision normal.py's narrow floats already had (J^T W r's residuals: W_R = 15 bits of
+  the largest, truncated from the cost's; W_RS = 13 when the client solves, which shrinks
+  each by less than 2^-12 of the largest: a shift of the converged pose far below its
+  noise). Projections a, b enter at a public
   scale (2^-13, saturating at |a| = 2, 63 degrees off the optical axis: only the step of
   such a point degrades, never the cost); inverse depths and residuals as block floating
   point, each block sharing its largest exponent, which the circuit returns (``ec``,
@@ -72,7 +75,10 @@ F_A = 13  # fraction bits of the projections a = x/z, b = y/z
 W_A = 14  # their magnitude bits: |a| < 2
 EMAX_A = W_A + SCALE_BIAS - F_A  # the float exponent at the top of that scale
 W_C = 15  # inverse depths, relative to the largest one
-W_R = 15  # residuals in J^T W r, relative to the largest one
+W_R = 15  # residuals in J^T W r, relative to the largest one, in the in-circuit solve
+W_RS = 13  # when the client solves (2 x 1,000 scenes per algorithm as with 15 bits, as
+# many iterations; 11 bits took more and lost a GN scene; the in-circuit solve's LM and GN
+# took 2 and 3 % more iterations with 13 and one GN scene hit the cap)
 W_RC = 24  # residuals in the cost: every float32 bit of the largest
 F_W = 15  # weights: the largest is 2^15, for the cost (module doc: the cost)
 W_W = 16
@@ -141,11 +147,12 @@ def camera_points_fixed(R: F, t: F, world: F) -> F:
 
 
 def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
-                           h_shift: int = 0):
+                           h_shift: int = 0, r_bits: int = W_R):
     """(hess (21,), grad (6,), cost (), ec, er), all integers: module doc. ``wfix`` is the
     (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words), which the cost
     uses too: ``weights`` is not read. J^T W J takes the Jacobian's magnitudes ``h_shift``
-    bits shorter (H_SHIFT where the client solves)."""
+    bits shorter and J^T W r the residuals at ``r_bits`` (H_SHIFT and W_RS where the
+    client solves)."""
     xc = camera_points_fixed(R, t, world)
     proj = xc[:, 0:2] / xc[:, 2:3]  # a = x/z, b = y/z correctly rounded
     err = proj - image
@@ -181,8 +188,8 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
     entries = [e for e in UPPER if e != (0, 1)]
     hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
     hess = fx.sum_tc(hterms)
-    wr = fx.shr(wrc, W_RC - W_R)  # w r at W_R bits: floors compose
-    gpart = fx.mul_cut(wr[:, :, None], jac, DROP, DROP - GUARD, jac.w + W_R - DROP)
+    wr = fx.shr(wrc, W_RC - r_bits)  # w r at r_bits bits: floors compose
+    gpart = fx.mul_cut(wr[:, :, None], jac, DROP, DROP - GUARD, jac.w + r_bits - DROP)
     gentries = [(i,) for i in range(6)]
     gterms = _gather(fx, gpart, n, (_sources(_U_COLS, gentries), _sources(_V_COLS, gentries)))
     grad = fx.sum_tc(gterms)
@@ -199,7 +206,7 @@ def scales(ec: int, er: int) -> tuple[np.ndarray, float]:
     """log2 of each column's scale (6,) and of the residuals' scale, from the block
     exponents the circuit returned."""
     sc = _block_scale(ec, W_C)
-    return np.array([sc, sc, sc, -F_A, -F_A, -F_A], float), _block_scale(er, W_R)
+    return np.array([sc, sc, sc, -F_A, -F_A, -F_A], float), _block_scale(er, W_RS)
 
 
 def weights_fixed(weights: np.ndarray) -> np.ndarray:

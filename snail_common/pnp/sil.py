@@ -21,7 +21,7 @@ from .fixed import TC
 from .fops import F, stack
 from .ldlt import ldlt_solve
 from .normal import UPPER, normal_equations
-from .normal_fixed import H_SHIFT, W_W, float_system, normal_equations_fixed
+from .normal_fixed import H_SHIFT, W_R, W_RS, W_W, float_system, normal_equations_fixed
 from .svd import pinv_step, svd_solve, weighted_system
 
 ALGORITHMS = ("lm", "gn")
@@ -87,7 +87,7 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     if solver == CLIENT and arith == "fixed":
-        hess, grad, cost, ec, er = _fixed_sums(inputs, H_SHIFT)
+        hess, grad, cost, ec, er = _fixed_sums(inputs, H_SHIFT, W_RS)
         return {"hess": hess, "grad": grad, "cost": cost,
                 **{name: TC(e, 8) for name, e in (("ec", ec), ("er", er))}}
     if solver == CLIENT:
@@ -119,7 +119,7 @@ def _damping_precision(hess: F, arith: str) -> AbstractContextManager:
     return hess.be.narrow(SOLVE_FRAC) if arith == "fixed" else nullcontext()
 
 
-def _fixed_sums(inputs: dict[str, F], h_shift: int = 0) -> tuple:
+def _fixed_sums(inputs: dict[str, F], h_shift: int = 0, r_bits: int = W_R) -> tuple:
     """normal_equations_fixed on the circuit's named inputs."""
     return normal_equations_fixed(inputs["R"], inputs["t"], inputs["image"], inputs["world"],
-                                  inputs["weights"], inputs["wfix"].v, h_shift)
+                                  inputs["weights"], inputs["wfix"].v, h_shift, r_bits)
