@@ -161,6 +161,10 @@ class FixMirror:
         mag = self.mul_cut(_unsigned(x), _unsigned(y), drop, cut, width).v
         return SM(x.s ^ y.s, np.maximum(mag, 0), width)
 
+    def add_shl(self, x: SM, y: SM, k: int, width: int) -> SM:
+        """|x| + (|y| << k), x's sign kept (for magnitudes that add: y non-negative)."""
+        return SM(x.s, (x.m + (y.m << k)) & ((1 << width) - 1), width)
+
     def shr(self, x: SM, k: int) -> SM:
         """|x| >> k, k bits narrower: a truncation that costs no gates."""
         return SM(x.s, x.m >> k, x.w - k)
@@ -360,6 +364,10 @@ class FixCircuit:
         v = self.mul_cut(SM(zero[0], x.m, x.w), SM(zero[1], y.m, y.w), drop, cut, width).v
         mag = self.b.and_(v[..., :width], self.b.not_(v[..., width])[..., None])
         return SM(self.b.xor(x.s, y.s), mag, width)
+
+    def add_shl(self, x: SM, y: SM, k: int, width: int) -> SM:
+        xm, ym = broadcast_lead(zext(x.m, width), shift.shl_const(y.m, k, width))
+        return SM(x.s, integer.add(self.b, xm, ym), width)
 
     def shr(self, x: SM, k: int) -> SM:
         return SM(x.s, np.asarray(x.m)[..., k:], x.w - k)

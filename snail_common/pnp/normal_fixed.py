@@ -15,22 +15,28 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   and the residuals r = a - u, whose float32 rounding of a, about 2^-24 |a| against
   residuals of 1e-3, sets the cost's precision (relative errors of ~1e-5; driver.py's
   cost_tol is 1e-4);
-- the cost in fixed point: w r^2 with r as block floating point at W_RC = 24 bits (all
-  of the largest residual's float32 bits; ``er``), w the 16-bit ``wfix``, w r kept to 24
-  bits (truncated: fixed.mul_cut_sm) and times r truncated 2^D_COST below the per-point
-  cost's unit of 2^-32 of the largest, then an exact sum: 1.7 k AND per point against
-  4.1 k for float32 products and a block fixed-point sum. Truncating r loses less than
-  2 w r u of w r^2 (u its unit, at most 2^(1 - W_RC) of the largest |r|), w r less than
-  2 r u, the product 3 of its units: with equal weights the cost is within
-  2^(3 - W_RC) sqrt(2n) + 6n 2^(D_COST + 2 - 2 W_RC) below the exact sum of the float32
-  residuals' squares (1.2e-5 at n = 256; measured: at most 3e-7; tests/test_loc_fixed.py),
-  below the residuals' own float32 error. It is the cost of the weights rounded to 16
-  bits relative to the largest (relative error below 2^-16 / (w / w_max), none where all
+- the cost in fixed point: (sqrt(w) r)^2 with r as block floating point at W_RC = 24
+  bits (all of the largest residual's float32 bits; ``er``), sqrt(w) the 16-bit
+  ``wfix``, sqrt(w) r kept to 24 bits (truncated: fixed.mul_cut_sm) and squared
+  truncated 2^D_COST below the per-point cost's unit of 2^-32 of the largest, then an
+  exact sum: 2.0 k AND per point against 4.1 k for float32 products and a block
+  fixed-point sum. With sigma = sqrt(w) r / u (u the residuals' unit, at most
+  2^(1 - W_RC) of the largest |r|), sqrt(w) r comes out less than 3 units below sigma,
+  which loses less than 6 sigma u^2 of w r^2, and its square less than 2 units of
+  2^D_COST: with equal weights the cost is within 6 sqrt(2n) 2^(1 - W_RC) +
+  n 2^(D_COST + 4 - 2 W_RC) below the exact sum of the float32 residuals' squares (1.7e-5
+  at n = 256; measured: at most 3e-7; tests/test_loc_fixed.py), below the residuals' own
+  float32 error. It is the cost of the weights' square roots rounded to 16 bits relative
+  to the largest (relative error of w below 2^-15 / sqrt(w / w_max), none where all
   weights are equal, as without lens distortion and with fx = fy): the cost the result
   reports and the accept/reject decisions, which compare two costs of the same weights;
   the result's reprojection RMS is computed from the final pose in float64, not from it;
 - fixed point: the Jacobian, J^T W J and J^T W r, at about 13 significant bits, the
-  precision normal.py's narrow floats already had (J^T W r's residuals: W_R = 15 bits of
+  precision normal.py's narrow floats already had. The Jacobian is sqrt(w) J: sqrt(w)
+  multiplies c, a and b (6 products per point) and the rest is built from those (6
+  more), 12 products instead of 5 for J and 10 for W J, all exact floors (truncated
+  products there lost GN scenes), J^T W J = (sqrt(w) J)^T (sqrt(w) J) and J^T W r =
+  (sqrt(w) J)^T (sqrt(w) r) (J^T W r's residuals: W_R = 15 bits of
   the largest, truncated from the cost's; W_RS = 13 when the client solves, which shrinks
   each by less than 2^-12 of the largest: a shift of the converged pose far below its
   noise). Projections a, b enter at a public
@@ -50,10 +56,11 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   with the shift, its LM (x10 / /10 damping) ended at the 20-iteration cap on 2 of 1,000
   scenes (seed 1) where it converges. The products of J^T W J and J^T W r are truncated
   (fixed.mul_cut, GUARD and H_GUARD), each row of J^T W J's with one shared multiplicand;
-- the client passes its weights normalized to a largest weight of 1 as 16-bit integers
-  (``wfix``, 2^F_W for 1): the cost takes all 16 bits, W J and J^T W r the top W_WS = 10
-  (a free truncation; w r is the cost's, shortened). The float32 weights stay an input
-  (unused by this circuit; the client decodes with their largest, ``weight_unit``).
+- the client passes the square roots of its weights normalized to a largest weight of 1
+  as 16-bit integers (``wfix``, 2^F_W for 1): the cost takes all 16 bits, the Jacobian
+  the top W_WS = 10 (a free truncation; sqrt(w) r is the cost's, shortened). The float32
+  weights stay an input (unused by this circuit; the client decodes with their largest,
+  ``weight_unit``).
 
 Outputs are integers: ``hess`` (21, packed as normal.UPPER) at scale
 2^(s_i + s_k + DROP), ``grad`` (6) at 2^(s_i + sr + DROP), where s is the column scale
@@ -80,7 +87,7 @@ W_RS = 13  # when the client solves (2 x 1,000 scenes per algorithm as with 15 b
 # many iterations; 11 bits took more and lost a GN scene; the in-circuit solve's LM and GN
 # took 2 and 3 % more iterations with 13 and one GN scene hit the cap)
 W_RC = 24  # residuals in the cost: every float32 bit of the largest
-F_W = 15  # weights: the largest is 2^15, for the cost (module doc: the cost)
+F_W = 15  # square roots of the weights: the largest is 2^15 (module doc: the cost)
 W_W = 16
 W_WS = 10  # their top bits scale the sums (1,000 random scenes per algorithm converged as
 # with 15 bits)
@@ -149,10 +156,10 @@ def camera_points_fixed(R: F, t: F, world: F) -> F:
 def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
                            h_shift: int = 0, r_bits: int = W_R):
     """(hess (21,), grad (6,), cost (), ec, er), all integers: module doc. ``wfix`` is the
-    (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words), which the cost
-    uses too: ``weights`` is not read. J^T W J takes the Jacobian's magnitudes ``h_shift``
-    bits shorter and J^T W r the residuals at ``r_bits`` (H_SHIFT and W_RS where the
-    client solves)."""
+    (n, 2) integer square roots of the weights (mirror: int64; circuit: W_W-bit input
+    words), which the cost uses too: ``weights`` is not read. J^T W J takes the
+    Jacobian's magnitudes ``h_shift`` bits shorter and J^T W r the residuals at
+    ``r_bits`` (H_SHIFT and W_RS where the client solves)."""
     xc = camera_points_fixed(R, t, world)
     proj = xc[:, 0:2] / xc[:, 2:3]  # a = x/z, b = y/z correctly rounded
     err = proj - image
@@ -163,23 +170,26 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
     c, ec = fx.recip_block(xc[:, 2], W_C)
     er = fx.block_emax(err)
     rc = fx.from_float(err, er, W_RC)
-    wc = fx.unsigned(wfix, W_W)
-    w = fx.shr(wc, W_W - W_WS)
-    wrc = fx.mul_cut_sm(rc, wc, F_W, F_W - GUARD, W_RC)           # < 2^W_RC: w <= 2^F_W
-    cost_pt = fx.mul_cut(wrc, rc, D_COST, D_COST - GUARD, 2 * W_RC - D_COST)
+    sw16 = fx.unsigned(wfix, W_W)                                 # sqrt(w): module doc
+    src = fx.mul_cut_sm(rc, sw16, F_W, F_W - GUARD, W_RC)        # < 2^W_RC: sqrt(w) <= 2^F_W
+    cost_pt = fx.mul_cut(src, src, D_COST, D_COST - GUARD, 2 * W_RC - D_COST)
     cost = fx.sum_tc(fx.concat_tc([fx.index_tc(cost_pt, (slice(None), k)) for k in range(2)], 0))
-    ac, bc = fx.mul(a, c, F_A, W_C + 1), fx.mul(b, c, F_A, W_C + 1)
-    ab = fx.mul(a, b, F_A, W_A + 1)
-    one_a = fx.add_const(fx.mul(a, a, F_A, W_A + 1), 1 << F_A, W_A + 2)
-    one_b = fx.add_const(fx.mul(b, b, F_A, W_A + 1), 1 << F_A, W_A + 2)
-    ju = fx.stack([c, fx.neg(ac), fx.neg(ab), one_a, fx.neg(b)], 1)
-    jv = fx.stack([c, fx.neg(bc), fx.neg(one_b), ab, a], 1)
-    jac = fx.stack([ju, jv], 1)                                   # (n, 2, 5)
+    sw = fx.shr(sw16, W_W - W_WS)                                 # (n, 2), 2^(W_WS - 1) is 1
+    cw = fx.mul(c[:, None], sw, W_WS - 1, W_C)                    # sqrt(w) c per row
+    aw = fx.mul(a[:, None], sw, W_WS - 1, W_A)
+    bw = fx.mul(b[:, None], sw, W_WS - 1, W_A)
+    ab_pair = fx.stack([a, b], 1)
+    cwab = fx.mul(cw, ab_pair, F_A, W_C + 1)                      # sqrt(w) (a c, b c)
+    awb = fx.mul(aw, b[:, None], F_A, W_A + 1)                    # sqrt(w) a b
+    sq = fx.stack([aw[:, 0], bw[:, 1]], 1)
+    one = fx.add_shl(fx.mul(sq, ab_pair, F_A, W_A + 1), sw, F_A - W_WS + 1, W_A + 2)
+    ju = fx.stack([cw[:, 0], fx.neg(cwab[:, 0]), fx.neg(awb[:, 0]), one[:, 0], fx.neg(bw[:, 0])], 1)
+    jv = fx.stack([cw[:, 1], fx.neg(cwab[:, 1]), fx.neg(one[:, 1]), awb[:, 1], aw[:, 1]], 1)
+    jac = fx.stack([ju, jv], 1)                                   # sqrt(w) J (n, 2, 5)
     jh = fx.shr(jac, h_shift)
-    wjac = fx.mul(w[:, :, None], jh, W_WS - 1, jh.w)
     pair_w = 2 * jac.w - DROP
     drop_h = DROP - 2 * h_shift
-    computed = fx.concat_tc([fx.mul_cut(wjac[:, :, i:i + 1], jh[:, :, i:4 if i == 1 else 5],
+    computed = fx.concat_tc([fx.mul_cut(jh[:, :, i:i + 1], jh[:, :, i:4 if i == 1 else 5],
                                         drop_h, drop_h - H_GUARD, pair_w)
                              for i in range(5)], 2)                    # (n, 2, 14)
     mirrored = fx.neg_tc(fx.stack_tc([fx.index_tc(computed, (slice(None), row, [_MIRRORED[row]]))
@@ -188,7 +198,7 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
     entries = [e for e in UPPER if e != (0, 1)]
     hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
     hess = fx.sum_tc(hterms)
-    wr = fx.shr(wrc, W_RC - r_bits)  # w r at r_bits bits: floors compose
+    wr = fx.shr(src, W_RC - r_bits)  # sqrt(w) r at r_bits bits: floors compose
     gpart = fx.mul_cut(wr[:, :, None], jac, DROP, DROP - GUARD, jac.w + r_bits - DROP)
     gentries = [(i,) for i in range(6)]
     gterms = _gather(fx, gpart, n, (_sources(_U_COLS, gentries), _sources(_V_COLS, gentries)))
@@ -215,7 +225,7 @@ def weights_fixed(weights: np.ndarray) -> np.ndarray:
     top = float(w.max()) if w.size else 0.0
     if not top > 0.0:
         return np.zeros(w.shape, np.uint16)
-    return np.rint(w / top * (1 << F_W)).astype(np.uint16)
+    return np.rint(np.sqrt(w / top) * (1 << F_W)).astype(np.uint16)
 
 
 def weight_unit(weights: np.ndarray) -> float:
