@@ -23,7 +23,7 @@ from snail_common.circuit.schedule import Schedule
 from snail_common.pnp import family
 from snail_common.pnp.do import do_reference, normal_equations64, pinv_solve64
 from snail_common.pnp.normal import UPPER
-from snail_common.pnp.normal_fixed import decode, weights_fixed
+from snail_common.pnp.normal_fixed import decode, weight_unit, weights_fixed
 from snail_common.pnp.sil import CLIENT, ITERATION_INPUTS
 from snail_common.pnp.spec import Spec, integer_outputs, run_mirror
 
@@ -91,8 +91,13 @@ def shared_bits(iface: Interface, frame: Values) -> tuple[np.ndarray, np.ndarray
 
 def circuit_outputs(spec: Spec, values: Values, out: Values) -> Values:
     """A circuit's outputs as the float circuit names them: fixed-point sums decoded with
-    the weights they were computed with."""
-    return decode(values["weights"], out) if integer_outputs(spec) else out
+    the weights they were computed with; the in-circuit solve's cost, of the normalized
+    weights, times their unit."""
+    if integer_outputs(spec):
+        return decode(values["weights"], out)
+    if spec.arith == "fixed":
+        return {**out, "cost": np.float64(out["cost"]) * weight_unit(values["weights"])}
+    return out
 
 
 class Backend:

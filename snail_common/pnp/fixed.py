@@ -30,6 +30,7 @@ import numpy as np
 from snail_common.arith import fconvert, integer, multiply, shift
 from snail_common.arith import mirror as m
 from snail_common.arith.fbits import round_pack
+from snail_common.arith.prefix import add_fast
 from snail_common.arith.words import broadcast_lead, cat, const, or_all, sext, zext
 from snail_common.circuit import ONE, ZERO
 
@@ -74,6 +75,20 @@ class FixMirror:
     def block_emax(self, x: F) -> np.ndarray:
         """The largest biased exponent over all of ``x`` (a 0-d int64)."""
         return np.int64(_exponent(x.v).max())
+
+    def recip_block(self, z: F, width: int) -> tuple[SM, np.ndarray]:
+        """1/z as block floating point without a float division: ``width``-bit magnitudes
+        floor(2^(width + 23) / S) >> (e - emin) (S the 24-bit significand, e the exponent,
+        emin the block's smallest), saturating at 2^width - 1 (S a power of two and e =
+        emin, or z zero or subnormal), and the block exponent 253 - emin (modulo 256) at
+        which from_float would have scaled them: the floor of the exact 1/z."""
+        bits = np.asarray(z.v, np.float32).view(np.uint32).astype(np.int64)
+        e = (bits >> 23) & 0xFF
+        emin = e.min()
+        top = (1 << width) - 1
+        quot = (1 << (width + 23)) // ((bits & 0x7FFFFF) | (1 << 23))   # < 2^(width + 1)
+        mag = np.minimum(quot >> np.minimum(e - emin, width + 1), top)
+        return SM(bits >> 31, np.where(e == 0, top, mag), width), np.int64((253 - emin) % 256)
 
     def from_float(self, x: F, emax, width: int) -> SM:
         """x as ``width``-bit magnitudes at scale 2^(emax - width - SCALE_BIAS); above that
@@ -140,6 +155,16 @@ class FixMirror:
         mag = total >> (drop + 1 - cut)
         return TC(np.where((x.s ^ y.s) == 1, -mag, mag), width + 1)
 
+    def mul_cut_sm(self, x: SM, y: SM, drop: int, cut: int, width: int) -> SM:
+        """mul_cut's magnitude, floored at 0, with the signs XORed apart: a truncated
+        product that feeds another product."""
+        mag = self.mul_cut(_unsigned(x), _unsigned(y), drop, cut, width).v
+        return SM(x.s ^ y.s, np.maximum(mag, 0), width)
+
+    def add_shl(self, x: SM, y: SM, k: int, width: int) -> SM:
+        """|x| + (|y| << k), x's sign kept (for magnitudes that add: y non-negative)."""
+        return SM(x.s, (x.m + (y.m << k)) & ((1 << width) - 1), width)
+
     def shr(self, x: SM, k: int) -> SM:
         """|x| >> k, k bits narrower: a truncation that costs no gates."""
         return SM(x.s, x.m >> k, x.w - k)
@@ -195,6 +220,10 @@ class FixMirror:
         return TC(x.v.sum(axis=0), x.w + levels)
 
 
+def _unsigned(x: SM) -> SM:
+    return SM(np.zeros_like(np.asarray(x.s)), x.m, x.w)
+
+
 def _exponent(v) -> np.ndarray:
     return (np.asarray(v, np.float32).view(np.uint32).astype(np.int64) >> 23) & 0xFF
 
@@ -208,14 +237,43 @@ class FixCircuit:
     def block_emax(self, x: F) -> np.ndarray:
         """Max tree over the 8-bit exponent fields of all of ``x``: one compare (8 AND)
         and one 8-bit mux per element."""
-        e = np.asarray(x.v)[..., 23:31].reshape(-1, 8)
+        return self._extreme(np.asarray(x.v)[..., 23:31].reshape(-1, 8), largest=True)
+
+    def _extreme(self, e: np.ndarray, largest: bool) -> np.ndarray:
+        """The largest or smallest of the words ``e`` (m, bits): a tree of compares."""
         while e.shape[0] > 1:
             half = e.shape[0] // 2
             lo, hi = e[:half], e[half:2 * half]
-            bigger = integer.lt(self.b, lo, hi)
-            pair = self.b.mux(bigger[..., None], lo, hi)
+            less = integer.lt(self.b, lo, hi)[..., None]
+            pair = self.b.mux(less, lo, hi) if largest else self.b.mux(less, hi, lo)
             e = np.concatenate([pair, e[2 * half:]], axis=0)
         return e[0]
+
+    def recip_block(self, z: F, width: int) -> tuple[SM, np.ndarray]:
+        """Non-restoring division of 2^(width + 23) by the significand (fdiv.py's loop,
+        ``width`` + 1 quotient bits), then from_float's shift by e - emin."""
+        b = self.b
+        v = np.asarray(z.v)
+        e = v[..., 23:31]
+        emin = self._extreme(e.reshape(-1, 8), largest=False)
+        adder = add_fast if self.be.depth_opt else integer.add
+        w = 25
+        dvs = zext(cat(v[..., :23], np.full(v.shape[:-1] + (1,), ONE, np.int32)), w)
+        r = adder(b, const(1 << 23, w), b.not_(dvs), ONE)    # 2^23 - S: the 2^width bit
+        qs = [b.not_(r[..., -1])]
+        for _ in range(width):
+            sub_ = qs[-1]
+            r2 = cat(np.zeros(v.shape[:-1] + (1,), np.int32), r[..., :w - 1])
+            r = adder(b, r2, b.xor(dvs, sub_[..., None]), sub_)
+            qs.append(b.not_(r[..., -1]))
+        q = np.stack(qs[::-1], axis=-1)                    # LSB first, width + 1 bits
+        d = integer.sub(b, e, np.broadcast_to(emin, e.shape))
+        stages = width.bit_length()
+        gone = or_all(b, d[..., stages:])                  # d > width: all shifted out
+        q = b.and_(shift.shr(b, q, d[..., :stages]), b.not_(gone)[..., None])
+        mag = b.or_(q[..., :width], q[..., width:])        # 2^width saturates
+        mag = b.or_(mag, b.not_(or_all(b, e))[..., None])  # zeros and subnormals
+        return SM(v[..., 31], mag, width), integer.sub(b, const(253, 8), emin)
 
     def from_float(self, x: F, emax, width: int) -> SM:
         b = self.b
@@ -298,6 +356,18 @@ class FixCircuit:
         acc = _accumulate(b, terms, cut, n + y.w + 2 - cut)
         mag = sext(acc[..., drop + 1 - cut:], width + 1)
         return TC(integer.cond_negate(b, mag, b.xor(x.s, y.s)), width + 1)
+
+    def mul_cut_sm(self, x: SM, y: SM, drop: int, cut: int, width: int) -> SM:
+        """The magnitudes' product (constant signs: no negation), its sign bit clearing
+        the rare -1."""
+        zero = np.full(np.shape(x.s), ZERO, np.int32), np.full(np.shape(y.s), ZERO, np.int32)
+        v = self.mul_cut(SM(zero[0], x.m, x.w), SM(zero[1], y.m, y.w), drop, cut, width).v
+        mag = self.b.and_(v[..., :width], self.b.not_(v[..., width])[..., None])
+        return SM(self.b.xor(x.s, y.s), mag, width)
+
+    def add_shl(self, x: SM, y: SM, k: int, width: int) -> SM:
+        xm, ym = broadcast_lead(zext(x.m, width), shift.shl_const(y.m, k, width))
+        return SM(x.s, integer.add(self.b, xm, ym), width)
 
     def shr(self, x: SM, k: int) -> SM:
         return SM(x.s, np.asarray(x.m)[..., k:], x.w - k)

@@ -10,14 +10,43 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   far out, so the map enters as block floating point (one exponent for all its
   coordinates) and t at the same scale with T_BITS more integer bits: it saturates only
   for a camera 2^11 map radii away, where no point spread could be resolved anyway;
-- float32 as before: projections, residuals and the cost, which decides acceptance and
-  must resolve relative changes of 1e-4 (driver.py);
+- float32: the projections a = x/z, b = y/z, each one correctly rounded division (two
+  divisions cost 0.3 k AND per point less than 1/z and two products, and round once),
+  and the residuals r = a - u, whose float32 rounding of a, about 2^-24 |a| against
+  residuals of 1e-3, sets the cost's precision (relative errors of ~1e-5; driver.py's
+  cost_tol is 1e-4);
+- the cost in fixed point: (sqrt(w) r)^2 with r as block floating point at W_RC = 24
+  bits (all of the largest residual's float32 bits; ``er``), sqrt(w) the 16-bit
+  ``wfix``, sqrt(w) r kept to 24 bits (truncated: fixed.mul_cut_sm) and squared
+  truncated 2^D_COST below the per-point cost's unit of 2^-32 of the largest, then an
+  exact sum: 2.0 k AND per point against 4.1 k for float32 products and a block
+  fixed-point sum. With sigma = sqrt(w) r / u (u the residuals' unit, at most
+  2^(1 - W_RC) of the largest |r|), sqrt(w) r comes out less than 3 units below sigma,
+  which loses less than 6 sigma u^2 of w r^2, and its square less than 2 units of
+  2^D_COST: with equal weights the cost is within 6 sqrt(2n) 2^(1 - W_RC) +
+  n 2^(D_COST + 4 - 2 W_RC) below the exact sum of the float32 residuals' squares (1.7e-5
+  at n = 256; measured: at most 3e-7; tests/test_loc_fixed.py), below the residuals' own
+  float32 error. It is the cost of the weights' square roots rounded to 16 bits relative
+  to the largest (relative error of w below 2^-15 / sqrt(w / w_max), none where all
+  weights are equal, as without lens distortion and with fx = fy): the cost the result
+  reports and the accept/reject decisions, which compare two costs of the same weights;
+  the result's reprojection RMS is computed from the final pose in float64, not from it;
 - fixed point: the Jacobian, J^T W J and J^T W r, at about 13 significant bits, the
-  precision normal.py's narrow floats already had. Projections a, b enter at a public
+  precision normal.py's narrow floats already had. The Jacobian is sqrt(w) J: sqrt(w)
+  multiplies c, a and b (6 products per point) and the rest is built from those (6
+  more), 12 products instead of 5 for J and 10 for W J, all exact floors (truncated
+  products there lost GN scenes), J^T W J = (sqrt(w) J)^T (sqrt(w) J) and J^T W r =
+  (sqrt(w) J)^T (sqrt(w) r) (J^T W r's residuals: W_R = 15 bits of
+  the largest, truncated from the cost's; W_RS = 13 when the client solves, which shrinks
+  each by less than 2^-12 of the largest: a shift of the converged pose far below its
+  noise). Projections a, b enter at a public
   scale (2^-13, saturating at |a| = 2, 63 degrees off the optical axis: only the step of
   such a point degrades, never the cost); inverse depths and residuals as block floating
   point, each block sharing its largest exponent, which the circuit returns (``ec``,
-  ``er``) so the client can scale the sums back;
+  ``er``) so the client can scale the sums back. The inverse depths need no float
+  division: fixed.recip_block divides 2^(W_C + 23) by z's significand in W_C + 1
+  non-restoring steps and shifts by z's exponent above the block's smallest, the floor of
+  the exact 1/z (0.5 k AND per point against 0.9 k for a float32 1/z converted);
 - when the client solves, J^T W J from the Jacobian's magnitudes H_SHIFT bits shorter
   (free: the low wires are left out), which makes its 38 products per point about a third
   cheaper. J^T W J only sets how fast the iteration converges, J^T W r where it converges:
@@ -27,13 +56,18 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   with the shift, its LM (x10 / /10 damping) ended at the 20-iteration cap on 2 of 1,000
   scenes (seed 1) where it converges. The products of J^T W J and J^T W r are truncated
   (fixed.mul_cut, GUARD and H_GUARD), each row of J^T W J's with one shared multiplicand;
-- the client passes its weights twice: as float32 for the cost, and normalized to a
-  largest weight of 1 as 10-bit integers (``wfix``) for the sums.
+- the client passes the square roots of its weights normalized to a largest weight of 1
+  as 16-bit integers (``wfix``, 2^F_W for 1): the cost takes all 16 bits, the Jacobian
+  the top W_WS = 10 (a free truncation; sqrt(w) r is the cost's, shortened). The float32
+  weights stay an input (unused by this circuit; the client decodes with their largest,
+  ``weight_unit``).
 
 Outputs are integers: ``hess`` (21, packed as normal.UPPER) at scale
 2^(s_i + s_k + DROP), ``grad`` (6) at 2^(s_i + sr + DROP), where s is the column scale
 (translation columns: the inverse depths' block scale; rotation columns: 2^-F_A) and sr
-the residuals' block scale (``scales`` computes them; fixed_io.py decodes).
+the residuals' block scale (``scales`` computes them; ``decode``), and ``cost`` at
+2^(D_COST + 2 src), src the residuals' block scale at W_RC bits; all three are of the
+normalized weights (times the largest weight in the client's units).
 """
 
 from __future__ import annotations
@@ -42,16 +76,22 @@ import numpy as np
 
 from .fixed import SCALE_BIAS, TC, fix_backend
 from .fops import F, concat
-from .normal import UPPER, project
+from .normal import UPPER
 
 F_A = 13  # fraction bits of the projections a = x/z, b = y/z
 W_A = 14  # their magnitude bits: |a| < 2
 EMAX_A = W_A + SCALE_BIAS - F_A  # the float exponent at the top of that scale
 W_C = 15  # inverse depths, relative to the largest one
-W_R = 15  # residuals, relative to the largest one
-F_W = 9  # weights: the largest is 2^9 (they scale the sums, not the cost: 1,000 random
-W_W = 10  # scenes per algorithm converged as with 15 bits)
-W_COST = 24  # per-point costs, relative to the largest one: every float32 bit of it
+W_R = 15  # residuals in J^T W r, relative to the largest one, in the in-circuit solve
+W_RS = 13  # when the client solves (2 x 1,000 scenes per algorithm as with 15 bits, as
+# many iterations; 11 bits took more and lost a GN scene; the in-circuit solve's LM and GN
+# took 2 and 3 % more iterations with 13 and one GN scene hit the cap)
+W_RC = 24  # residuals in the cost: every float32 bit of the largest
+F_W = 15  # square roots of the weights: the largest is 2^15 (module doc: the cost)
+W_W = 16
+W_WS = 10  # their top bits scale the sums (1,000 random scenes per algorithm converged as
+# with 15 bits)
+D_COST = 16  # bits dropped by w r times r: a per-point cost is within 2^-28 of the largest
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 HESS_BITS = 31  # to_float's integers are at most 2^31 in magnitude (float_system)
 H_SHIFT = 3  # J^T W J's Jacobian magnitudes are this much shorter when the client solves
@@ -114,37 +154,42 @@ def camera_points_fixed(R: F, t: F, world: F) -> F:
 
 
 def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
-                           h_shift: int = 0):
-    """(hess (21,), grad (6,), cost (), ek, ec, er), all integers: module doc. ``wfix`` is the
-    (n, 2) integer weights (mirror: int64; circuit: W_W-bit input words); J^T W J takes the
-    Jacobian's magnitudes ``h_shift`` bits shorter (H_SHIFT where the client solves)."""
-    proj, err, inv_z = project(camera_points_fixed(R, t, world), image)
-    werr = err * weights
-    cost_pt = werr * err
+                           h_shift: int = 0, r_bits: int = W_R):
+    """(hess (21,), grad (6,), cost (), ec, er), all integers: module doc. ``wfix`` is the
+    (n, 2) integer square roots of the weights (mirror: int64; circuit: W_W-bit input
+    words), which the cost uses too: ``weights`` is not read. J^T W J takes the
+    Jacobian's magnitudes ``h_shift`` bits shorter and J^T W r the residuals at
+    ``r_bits`` (H_SHIFT and W_RS where the client solves)."""
+    xc = camera_points_fixed(R, t, world)
+    proj = xc[:, 0:2] / xc[:, 2:3]  # a = x/z, b = y/z correctly rounded
+    err = proj - image
     fx = fix_backend(R)
-    ek = fx.block_emax(cost_pt)  # the sum: exact integers under one exponent, log depth
-    cost = fx.sum_tc(fx.twos(fx.from_float(concat([cost_pt[:, 0], cost_pt[:, 1]]), ek,
-                                           W_COST)))
     n = len(proj)
     a = fx.from_float(proj[:, 0], EMAX_A, W_A)
     b = fx.from_float(proj[:, 1], EMAX_A, W_A)
-    ec = fx.block_emax(inv_z)
-    c = fx.from_float(inv_z, ec, W_C)
+    c, ec = fx.recip_block(xc[:, 2], W_C)
     er = fx.block_emax(err)
-    r = fx.from_float(err, er, W_R)
-    w = fx.unsigned(wfix, W_W)
-    ac, bc = fx.mul(a, c, F_A, W_C + 1), fx.mul(b, c, F_A, W_C + 1)
-    ab = fx.mul(a, b, F_A, W_A + 1)
-    one_a = fx.add_const(fx.mul(a, a, F_A, W_A + 1), 1 << F_A, W_A + 2)
-    one_b = fx.add_const(fx.mul(b, b, F_A, W_A + 1), 1 << F_A, W_A + 2)
-    ju = fx.stack([c, fx.neg(ac), fx.neg(ab), one_a, fx.neg(b)], 1)
-    jv = fx.stack([c, fx.neg(bc), fx.neg(one_b), ab, a], 1)
-    jac = fx.stack([ju, jv], 1)                                   # (n, 2, 5)
+    rc = fx.from_float(err, er, W_RC)
+    sw16 = fx.unsigned(wfix, W_W)                                 # sqrt(w): module doc
+    src = fx.mul_cut_sm(rc, sw16, F_W, F_W - GUARD, W_RC)        # < 2^W_RC: sqrt(w) <= 2^F_W
+    cost_pt = fx.mul_cut(src, src, D_COST, D_COST - GUARD, 2 * W_RC - D_COST)
+    cost = fx.sum_tc(fx.concat_tc([fx.index_tc(cost_pt, (slice(None), k)) for k in range(2)], 0))
+    sw = fx.shr(sw16, W_W - W_WS)                                 # (n, 2), 2^(W_WS - 1) is 1
+    cw = fx.mul(c[:, None], sw, W_WS - 1, W_C)                    # sqrt(w) c per row
+    aw = fx.mul(a[:, None], sw, W_WS - 1, W_A)
+    bw = fx.mul(b[:, None], sw, W_WS - 1, W_A)
+    ab_pair = fx.stack([a, b], 1)
+    cwab = fx.mul(cw, ab_pair, F_A, W_C + 1)                      # sqrt(w) (a c, b c)
+    awb = fx.mul(aw, b[:, None], F_A, W_A + 1)                    # sqrt(w) a b
+    sq = fx.stack([aw[:, 0], bw[:, 1]], 1)
+    one = fx.add_shl(fx.mul(sq, ab_pair, F_A, W_A + 1), sw, F_A - W_WS + 1, W_A + 2)
+    ju = fx.stack([cw[:, 0], fx.neg(cwab[:, 0]), fx.neg(awb[:, 0]), one[:, 0], fx.neg(bw[:, 0])], 1)
+    jv = fx.stack([cw[:, 1], fx.neg(cwab[:, 1]), fx.neg(one[:, 1]), awb[:, 1], aw[:, 1]], 1)
+    jac = fx.stack([ju, jv], 1)                                   # sqrt(w) J (n, 2, 5)
     jh = fx.shr(jac, h_shift)
-    wjac = fx.mul(w[:, :, None], jh, F_W, jh.w)
     pair_w = 2 * jac.w - DROP
     drop_h = DROP - 2 * h_shift
-    computed = fx.concat_tc([fx.mul_cut(wjac[:, :, i:i + 1], jh[:, :, i:4 if i == 1 else 5],
+    computed = fx.concat_tc([fx.mul_cut(jh[:, :, i:i + 1], jh[:, :, i:4 if i == 1 else 5],
                                         drop_h, drop_h - H_GUARD, pair_w)
                              for i in range(5)], 2)                    # (n, 2, 14)
     mirrored = fx.neg_tc(fx.stack_tc([fx.index_tc(computed, (slice(None), row, [_MIRRORED[row]]))
@@ -153,13 +198,13 @@ def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
     entries = [e for e in UPPER if e != (0, 1)]
     hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
     hess = fx.sum_tc(hterms)
-    wr = fx.mul(w, r, F_W, W_R)
-    gpart = fx.mul_cut(wr[:, :, None], jac, DROP, DROP - GUARD, jac.w + W_R - DROP)
+    wr = fx.shr(src, W_RC - r_bits)  # sqrt(w) r at r_bits bits: floors compose
+    gpart = fx.mul_cut(wr[:, :, None], jac, DROP, DROP - GUARD, jac.w + r_bits - DROP)
     gentries = [(i,) for i in range(6)]
     gterms = _gather(fx, gpart, n, (_sources(_U_COLS, gentries), _sources(_V_COLS, gentries)))
     grad = fx.sum_tc(gterms)
     hess = fx.insert_zero(hess, UPPER.index((0, 1)))               # ju, jv never both
-    return hess, grad, cost, ek, ec, er
+    return hess, grad, cost, ec, er
 
 
 def _block_scale(emax, width: int) -> float:
@@ -171,7 +216,7 @@ def scales(ec: int, er: int) -> tuple[np.ndarray, float]:
     """log2 of each column's scale (6,) and of the residuals' scale, from the block
     exponents the circuit returned."""
     sc = _block_scale(ec, W_C)
-    return np.array([sc, sc, sc, -F_A, -F_A, -F_A], float), _block_scale(er, W_R)
+    return np.array([sc, sc, sc, -F_A, -F_A, -F_A], float), _block_scale(er, W_RS)
 
 
 def weights_fixed(weights: np.ndarray) -> np.ndarray:
@@ -180,22 +225,28 @@ def weights_fixed(weights: np.ndarray) -> np.ndarray:
     top = float(w.max()) if w.size else 0.0
     if not top > 0.0:
         return np.zeros(w.shape, np.uint16)
-    return np.rint(w / top * (1 << F_W)).astype(np.uint16)
+    return np.rint(np.sqrt(w / top) * (1 << F_W)).astype(np.uint16)
+
+
+def weight_unit(weights: np.ndarray) -> float:
+    """What ``weights_fixed`` divided the weights by (relative to 1): the sums and the cost
+    times it are in the units of the float circuit."""
+    return float(np.max(weights)) if np.size(weights) else 0.0
 
 
 def decode(weights: np.ndarray, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The circuit's integer outputs as float64 J^T W J (packed), J^T W r and the cost, in
     the units of the float circuit (weights as given, not normalized)."""
     col, sr = scales(int(out["ec"]), int(out["er"]))
-    top = float(np.max(weights)) if np.size(weights) else 0.0
+    top = weight_unit(weights)
     rows, cols = np.array(UPPER).T
     hess = np.asarray(out["hess"], np.float64) * np.exp2(col[rows] + col[cols] + DROP) * top
     grad = np.asarray(out["grad"], np.float64) * np.exp2(col + sr + DROP) * top
-    cost = float(out["cost"]) * 2.0 ** _block_scale(out["ek"], W_COST)
+    cost = float(out["cost"]) * 2.0 ** (D_COST + 2 * _block_scale(out["er"], W_RC)) * top
     return {"hess": hess, "grad": grad, "cost": np.float64(cost)}
 
 
-def float_system(R: F, hess, grad, cost, ek, ec, er):
+def float_system(R: F, hess, grad, cost, ec, er):
     """For a solve inside the circuit: the integer sums as float32 (hess, grad, cost) and
     the function taking the solution y of hess y = -grad to the step in the float
     circuit's units. The solve needs no scales: with H = D H' D and g = s D g' (D the
@@ -208,7 +259,8 @@ def float_system(R: F, hess, grad, cost, ek, ec, er):
     hess_f = fx.scale2(hess_f, -HESS_BITS)
     grad_f, drop_g = fx.to_float(grad)
     cost_f, drop_k = fx.to_float(cost)
-    cost_f = fx.scale2(cost_f, fx.exponent_offset(ek, None, drop_k - W_COST - SCALE_BIAS))
+    cost_f = fx.scale2(cost_f, fx.exponent_offset(er, None, drop_k + D_COST - W_RC - SCALE_BIAS))
+    cost_f = fx.scale2(cost_f, fx.exponent_offset(er, None, -W_RC - SCALE_BIAS))
     shift = drop_g - drop_h - HESS_BITS
     to_translation = fx.exponent_offset(er, ec, W_C - W_R + shift)        # sr - sc
     to_rotation = fx.exponent_offset(er, None, F_A - W_R - SCALE_BIAS + shift)   # sr + F_A

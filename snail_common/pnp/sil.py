@@ -21,7 +21,7 @@ from .fixed import TC
 from .fops import F, stack
 from .ldlt import ldlt_solve
 from .normal import UPPER, normal_equations
-from .normal_fixed import H_SHIFT, W_W, float_system, normal_equations_fixed
+from .normal_fixed import H_SHIFT, W_R, W_RS, W_W, float_system, normal_equations_fixed
 from .svd import pinv_step, svd_solve, weighted_system
 
 ALGORITHMS = ("lm", "gn")
@@ -50,15 +50,15 @@ def input_shapes(algorithm: str, n: int, solver: str = "ldlt",
 ITERATION_INPUTS = ("R", "t", "lam")
 # (dtype, bits) of the inputs that are not float32, and the fixed-point circuit's outputs
 INPUT_TYPES = {"wfix": ("uint16", W_W)}
-FIXED_OUTPUT_TYPES = {"hess": "int64", "grad": "int64", "cost": "int64", "ek": "uint8",
-                      "ec": "uint8", "er": "uint8"}
+FIXED_OUTPUT_TYPES = {"hess": "int64", "grad": "int64", "cost": "int64", "ec": "uint8",
+                      "er": "uint8"}
 
 
 OUTPUT_SHAPES = {"step": (6,), "cost": ()}
 # J^T W J packed as normal.UPPER, J^T W r and the cost
 NORMAL_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": ()}
 # the same in fixed point, with the block exponents that scale them (normal_fixed.py)
-FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ek": (), "ec": (), "er": ()}
+FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ec": (), "er": ()}
 
 Solver = Callable[[F, F], F]
 
@@ -87,9 +87,9 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     if solver == CLIENT and arith == "fixed":
-        hess, grad, cost, ek, ec, er = _fixed_sums(inputs, H_SHIFT)
+        hess, grad, cost, ec, er = _fixed_sums(inputs, H_SHIFT, W_RS)
         return {"hess": hess, "grad": grad, "cost": cost,
-                **{name: TC(e, 8) for name, e in (("ek", ek), ("ec", ec), ("er", er))}}
+                **{name: TC(e, 8) for name, e in (("ec", ec), ("er", er))}}
     if solver == CLIENT:
         hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
                                             inputs["world"], inputs["weights"])
@@ -119,7 +119,7 @@ def _damping_precision(hess: F, arith: str) -> AbstractContextManager:
     return hess.be.narrow(SOLVE_FRAC) if arith == "fixed" else nullcontext()
 
 
-def _fixed_sums(inputs: dict[str, F], h_shift: int = 0) -> tuple:
+def _fixed_sums(inputs: dict[str, F], h_shift: int = 0, r_bits: int = W_R) -> tuple:
     """normal_equations_fixed on the circuit's named inputs."""
     return normal_equations_fixed(inputs["R"], inputs["t"], inputs["image"], inputs["world"],
-                                  inputs["weights"], inputs["wfix"].v, h_shift)
+                                  inputs["weights"], inputs["wfix"].v, h_shift, r_bits)
