@@ -219,3 +219,46 @@ def test_a_big_frame_header_alone_does_not_allocate_its_body():
     _feed(reader, struct.pack(">I", 4 << 20) + b"x" * 100)
     assert len(reader._big) <= FrameReader.SMALL
     assert reader.partial
+
+
+def _big_tables(fill: int, size: int = 300_000) -> dict:
+    return messages.make("tables", sid=SID, data=bytes([fill]) * size)
+
+
+def test_big_tables_are_views_of_the_receive_buffer_and_recycled_buffers_are_reused():
+    """A large ``tables`` frame is handed over as a view of the buffer TLS wrote it to
+    (no msgpack copy); frames still held keep their bytes while later ones arrive, and a
+    buffer handed back with ``recycle`` receives a later frame instead of fresh memory."""
+    reader = FrameReader()
+    first, second = _big_tables(1), _big_tables(2)
+    (a,) = [m for m, _ in _feed(reader, encode_bytes(first))]
+    (b,) = [m for m, _ in _feed(reader, encode_bytes(second))]
+    assert isinstance(a["data"], memoryview) and isinstance(b["data"], memoryview)
+    assert a["data"].obj is not b["data"].obj
+    assert a == first and b == second  # the first frame was not overwritten by the second
+    buffer = a["data"].obj
+    reader.recycle(a["data"])
+    (c,) = [m for m, _ in _feed(reader, encode_bytes(_big_tables(3)))]
+    assert c["data"].obj is buffer and c == _big_tables(3)
+    assert b == second
+
+
+def test_only_tables_are_lent_and_lifted_fields_are_still_checked():
+    """Other large frames (labels) are copied as before; a lifted field is validated and a
+    repeated key refused just as when msgpack decodes it whole."""
+    labels = messages.make("input_labels", sid=SID, start=0, total=20_000,
+                           labels=bytes(16 * 20_000))
+    (got,) = [m for m, _ in _feed(FrameReader(), encode_bytes(labels))]
+    assert isinstance(got["labels"], bytes) and got == labels
+    big = b"\xc6" + (100_000).to_bytes(4, "big") + bytes(100_000)
+    head = body({"v": 1, "t": "tables", "sid": SID})
+    for bad, code in [
+        (bytes([head[0] + 1]) + head[1:] + body("data") + big + body("data") + big,
+         errors.MALFORMED),  # "data" twice: one map entry too many
+        (bytes([head[0] + 2]) + head[1:] + body("data") + big + body("junk") + big,
+         errors.UNKNOWN_FIELD),
+        (body({"v": 1, "t": "tables", "data": b""})[:-2] + big, errors.MISSING_FIELD),
+    ]:
+        with pytest.raises(errors.ProtocolError) as info:
+            _feed(FrameReader(), struct.pack(">I", len(bad)) + bad)
+        assert info.value.code == code

@@ -255,6 +255,11 @@ class Connection(asyncio.BufferedProtocol):
         self.bytes_out += size
         return size
 
+    def recycle(self, data: memoryview) -> None:
+        """Hand back the data of a received ``tables`` frame once nothing reads it any
+        more: the next frame is received into its buffer (frames.FrameReader)."""
+        self._frames.recycle(data)
+
     def post(self, msg: dict[str, Any]) -> None:
         """Write a notice if the connection is still open (errors to a peer that may
         already be gone)."""
