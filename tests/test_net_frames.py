@@ -11,6 +11,7 @@ from snail_common.net import errors, messages
 from snail_common.net.frames import (
     MAX_FRAME,
     PROTOCOL_VERSION,
+    BodyPool,
     FrameReader,
     decode,
     encode,
@@ -262,3 +263,24 @@ def test_only_tables_are_lent_and_lifted_fields_are_still_checked():
         with pytest.raises(errors.ProtocolError) as info:
             _feed(FrameReader(), struct.pack(">I", len(bad)) + bad)
         assert info.value.code == code
+
+
+def test_a_shared_pool_hands_recycled_bodies_to_other_connections_within_its_limit():
+    """Readers sharing a BodyPool (a daemon's connections) receive into bodies another one
+    recycled, the closest fit first; the pool keeps at most its limit in bytes."""
+    pool = BodyPool(limit=2 << 20)
+    one, two = FrameReader(pool=pool), FrameReader(pool=pool)
+    (small,) = [m for m, _ in _feed(one, encode_bytes(_big_tables(1, 300_000)))]
+    (large,) = [m for m, _ in _feed(one, encode_bytes(_big_tables(2, 900_000)))]
+    one.recycle(large["data"])
+    one.recycle(small["data"])
+    assert pool.held == len(small["data"].obj) + len(large["data"].obj)
+    (got,) = [m for m, _ in _feed(two, encode_bytes(_big_tables(3, 290_000)))]
+    assert got["data"].obj is small["data"].obj and got == _big_tables(3, 290_000)
+    (got,) = [m for m, _ in _feed(two, encode_bytes(_big_tables(4, 800_000)))]
+    assert got["data"].obj is large["data"].obj and got == _big_tables(4, 800_000)
+    assert pool.held == 0
+    full = BodyPool(limit=1 << 20)
+    full.give(bytearray(600_000))
+    full.give(bytearray(600_000))  # over the limit: let go
+    assert full.held == 600_000

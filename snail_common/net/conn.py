@@ -43,7 +43,7 @@ from .errors import (
     ProtocolError,
     RemoteError,
 )
-from .frames import MAX_FRAME, FrameReader, encode
+from .frames import MAX_FRAME, BodyPool, FrameReader, encode
 from .tls import Identity, peer_identity
 
 SOFTWARE = "snail/0.1"
@@ -76,7 +76,7 @@ class Connection(asyncio.BufferedProtocol):
 
     def __init__(self, max_frame: int = MAX_FRAME, inbox: int = INBOX,
                  on_open: Callable[[Connection], None] | None = None,
-                 frame_timeout: float | None = None) -> None:
+                 frame_timeout: float | None = None, pool: BodyPool | None = None) -> None:
         self.peer_role = ""  # from the certificate, once connected
         self.identity: Identity | None = None
         self.frame_timeout = frame_timeout  # a begun frame must be complete within this
@@ -85,7 +85,7 @@ class Connection(asyncio.BufferedProtocol):
         self.info: dict[str, Any] = {}  # the peer's hello or capabilities
         self.bytes_in = 0
         self.bytes_out = 0
-        self._frames = FrameReader(max_frame)
+        self._frames = FrameReader(max_frame, pool)
         self._inbox: asyncio.Queue = asyncio.Queue()
         self._inbox_size = inbox
         self._reading_paused = False

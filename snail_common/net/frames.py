@@ -106,6 +106,7 @@ _STR_LEN = {0xD9: 1, 0xDA: 2, 0xDB: 4}
 _FIXED = {0xC0: 0, 0xC2: 0, 0xC3: 0, 0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8,
           0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8}  # nil, bools, numbers: bytes after the tag
 _EMPTY_BIN = b"\xc4\x00"
+_ROUND = 64 << 10  # body buffers are whole multiples of this
 
 
 def decode(body: bytes | memoryview, lend: bool = False) -> dict[str, Any]:
@@ -214,34 +215,66 @@ def _oversize(length: int, max_frame: int) -> ProtocolError:
                                    f"{max_frame}")
 
 
+class BodyPool:
+    """Received frame bodies kept for later frames of the connections that share it, up to
+    ``limit`` bytes: a buffer that comes back is memory already mapped, where a new one
+    is fresh pages the kernel faults in and zeroes (at n = 256 most of the evaluator's
+    page faults). It never makes a reader hold more: a buffer is only taken in place of
+    one the reader would allocate."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.held = 0
+        self._free: list[bytearray] = []
+
+    def take(self, size: int) -> bytearray | None:
+        """The smallest kept buffer of at least ``size`` bytes, if there is one."""
+        fits = [i for i, buf in enumerate(self._free) if len(buf) >= size]
+        if not fits:
+            return None
+        buf = self._free.pop(min(fits, key=lambda i: len(self._free[i])))  # the closest fit
+        self.held -= len(buf)
+        return buf
+
+    def clear(self) -> None:
+        """Let every kept buffer go (an idle daemon's memory follows its load)."""
+        self._free.clear()
+        self.held = 0
+
+    def give(self, buf: bytearray) -> None:
+        """Keep ``buf`` (no view of it may be read or written any more) if it fits."""
+        if self.held + len(buf) <= self.limit and all(b is not buf for b in self._free):
+            self._free.append(buf)
+            self.held += len(buf)
+
+
 class FrameReader:
     """Incremental decoder for a BufferedProtocol: the transport decrypts straight into
     ``buffer()``, ``filled(n)`` decodes the frames those bytes complete.
 
     Small frames share one buffer; a larger frame body (garbled tables) goes to a
-    dedicated buffer, so the bytes are written once by TLS; a ``tables`` frame's data is
-    then a view of that buffer (the frame keeps it; the consumer may hand it back with
-    ``recycle`` once done, so the next body lands in memory already mapped instead of
-    fresh pages), other frames are copied once by msgpack and the buffer is reused. A
-    body buffer grows with the bytes that arrive (doubling, up to the announced length),
-    not with what a header announces: a peer must send what it makes this side hold. The
-    length is checked before any of the body is accepted, so an oversized frame costs
-    nothing.
+    dedicated buffer, so the bytes are written once by TLS. A ``tables`` frame's data is
+    then a view of that buffer: the frame keeps it, and the consumer may hand it back with
+    ``recycle`` once done, to a BodyPool the next bodies are received into. Other frames
+    are copied once by msgpack and the buffer is reused. A body buffer grows with the
+    bytes that arrive (doubling, up to the announced length), not with what a header
+    announces: a peer must send what it makes this side hold. The length is checked
+    before any of the body is accepted, so an oversized frame costs nothing.
     """
 
     SMALL = 256 << 10
     BIG = 16 << 10  # incomplete frames longer than this go to the dedicated buffer
     MIN_FREE = 16 << 10
-    SPARE = 4  # recycled body buffers kept
+    POOL = 4 << 20  # bytes of recycled bodies a reader of its own keeps
 
-    def __init__(self, max_frame: int = MAX_FRAME) -> None:
+    def __init__(self, max_frame: int = MAX_FRAME, pool: BodyPool | None = None) -> None:
         self.max_frame = max_frame
+        self._pool = pool if pool is not None else BodyPool(self.POOL)
         self._small = bytearray(self.SMALL)
         self._start = self._end = 0
         self._big = bytearray(0)
         self._big_len = 0  # > 0 while a body is being received into _big
         self._big_pos = 0
-        self._spare: list[bytearray] = []
 
     @property
     def partial(self) -> bool:
@@ -271,7 +304,7 @@ class FrameReader:
             length, self._big_len = self._big_len, 0
             msg = decode(memoryview(self._big)[:length], lend=True)
             if lent(msg):  # the frame keeps this buffer; the next body takes another
-                self._big = self._spare.pop() if self._spare else bytearray(0)
+                self._big = bytearray(0)
             return [(msg, LENGTH.size + length)] + self._parse()
         self._end += n
         return self._parse()
@@ -291,6 +324,8 @@ class FrameReader:
                 self._start = body + length
             elif length > self.BIG:
                 self._big_pos = 0
+                if len(self._big) < length:  # a recycled body that holds it all, or grow
+                    self._big = self._pool.take(length) or self._big
                 self._grow(min(length, max(2 * have, self.SMALL)))
                 self._big[:have] = buf[body : self._end]
                 self._big_len, self._big_pos = length, have
@@ -305,23 +340,17 @@ class FrameReader:
     def release(self) -> None:
         """Drop the body buffers (after a refused frame: nothing more will be read)."""
         self._big, self._big_len, self._big_pos = bytearray(0), 0, 0
-        self._spare.clear()
 
     def recycle(self, data: memoryview) -> None:
         """Take back the buffer under ``data``, a view from a ``tables`` frame this reader
         decoded, once nothing reads it any more (it will be overwritten)."""
-        buf = data.obj
-        if (isinstance(buf, bytearray) and buf is not self._big and len(self._spare) < self.SPARE
-                and all(b is not buf for b in self._spare)):
-            self._spare.append(buf)
+        if isinstance(data.obj, bytearray) and data.obj is not self._big:
+            self._pool.give(data.obj)
 
     def _grow(self, size: int) -> None:
         """Make the body buffer at least ``size`` bytes, keeping what it holds (a new
         buffer: the transport may still hold a view of the old one)."""
-        if len(self._big) < size:
-            spare = next((b for b in self._spare if len(b) >= size), None)
-            if spare is not None:
-                self._spare.remove(spare)
-            bigger = spare if spare is not None else bytearray(size)
+        if len(self._big) < size:  # whole 64 KiB: frames of about one size share buffers
+            bigger = bytearray(min(max(self.max_frame, size), -(-size // _ROUND) * _ROUND))
             bigger[: self._big_pos] = self._big[: self._big_pos]
             self._big = bigger
