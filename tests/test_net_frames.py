@@ -284,3 +284,39 @@ def test_a_shared_pool_hands_recycled_bodies_to_other_connections_within_its_lim
     full.give(bytearray(600_000))
     full.give(bytearray(600_000))  # over the limit: let go
     assert full.held == 600_000
+
+
+class _Recorder:
+    """A transport that records what it is given, call by call."""
+
+    def __init__(self) -> None:
+        self.calls: list[list] = []
+
+    def get_extra_info(self, name, default=None):
+        return default
+
+    def set_write_buffer_limits(self, high=None, low=None) -> None:
+        pass
+
+    def is_closing(self) -> bool:
+        return False
+
+    def write(self, data) -> None:
+        self.calls.append([data])
+
+    def writelines(self, parts) -> None:
+        self.calls.append(list(parts))
+
+
+def test_a_frame_reaches_the_transport_in_one_call_with_its_data_uncopied():
+    """Length, header and table data in one transport call: TLS then makes one socket
+    write per frame instead of three (two of them a few bytes long)."""
+    from snail_common.net.conn import Connection
+
+    conn, transport = Connection(), _Recorder()
+    conn.connection_made(transport)
+    msg = messages.make("tables", sid=SID, data=memoryview(bytes(range(256)) * 300))
+    size = conn.write(msg)
+    (call,) = transport.calls
+    assert b"".join(call) == encode_bytes(msg) and size == len(encode_bytes(msg))
+    assert any(part is msg["data"] for part in call)

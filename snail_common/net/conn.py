@@ -245,12 +245,13 @@ class Connection(asyncio.BufferedProtocol):
         return msg
 
     def write(self, msg: dict[str, Any]) -> int:
-        """Queue one frame without waiting (frames are never interleaved); its size."""
+        """Queue one frame without waiting (frames are never interleaved); its size. The
+        frame's buffers go to the transport in one call: TLS encrypts them and hands the
+        socket one write, not one per buffer (length, header, table data)."""
         if self._lost is not None or self.transport is None or self.transport.is_closing():
             raise ConnectionClosed(f"the connection to the {self.peer_role} is closed")
         parts = encode(msg)
-        for part in parts:
-            self.transport.write(part)
+        self.transport.writelines(parts)
         size = sum(len(p) for p in parts)
         self.bytes_out += size
         return size
