@@ -320,3 +320,31 @@ def test_a_frame_reaches_the_transport_in_one_call_with_its_data_uncopied():
     (call,) = transport.calls
     assert b"".join(call) == encode_bytes(msg) and size == len(encode_bytes(msg))
     assert any(part is msg["data"] for part in call)
+
+
+def test_a_daemon_lets_its_recycled_bodies_go_once_idle(monkeypatch):
+    """Back-to-back sessions keep the pool; a daemon idle for BODIES_IDLE_S holds none of
+    it (its memory follows its load)."""
+    import asyncio
+    import logging
+
+    from snail_common.net import service
+
+    monkeypatch.setattr(service, "BODIES_IDLE_S", 0.05)
+    record = {"sid": SID, "circuit": "c", "n_and": 1, "bytes_in": 0, "bytes_out": 0,
+              "seconds": 0.0, "outcome": "ok"}
+
+    async def run() -> tuple[int, int]:
+        daemon = service.Daemon(service.Options(workers=1), logging.getLogger("test"))
+        daemon.bodies.give(bytearray(1 << 20))
+        daemon.counters["active"] = 1
+        daemon.finish("", record)  # idle now ...
+        daemon.counters["active"] = 1  # ... but the next session starts at once
+        await asyncio.sleep(0.1)
+        kept = daemon.bodies.held
+        daemon.finish("", record)
+        await asyncio.sleep(0.1)
+        daemon.pool.shutdown()
+        return kept, daemon.bodies.held
+
+    assert asyncio.run(run()) == (1 << 20, 0)
