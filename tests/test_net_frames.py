@@ -267,7 +267,8 @@ def test_only_tables_are_lent_and_lifted_fields_are_still_checked():
 
 def test_a_shared_pool_hands_recycled_bodies_to_other_connections_within_its_limit():
     """Readers sharing a BodyPool (a daemon's connections) receive into bodies another one
-    recycled, the closest fit first; the pool keeps at most its limit in bytes."""
+    recycled, the closest fit first and never one over twice the frame; the pool keeps
+    at most its limit in bytes."""
     pool = BodyPool(limit=2 << 20)
     one, two = FrameReader(pool=pool), FrameReader(pool=pool)
     (small,) = [m for m, _ in _feed(one, encode_bytes(_big_tables(1, 300_000)))]
@@ -280,6 +281,10 @@ def test_a_shared_pool_hands_recycled_bodies_to_other_connections_within_its_lim
     (got,) = [m for m, _ in _feed(two, encode_bytes(_big_tables(4, 800_000)))]
     assert got["data"].obj is large["data"].obj and got == _big_tables(4, 800_000)
     assert pool.held == 0
+    pool.give(bytearray(1 << 20))
+    (got,) = [m for m, _ in _feed(two, encode_bytes(_big_tables(5, 300_000)))]
+    assert len(got["data"].obj) < 1 << 19  # not the kept 1 MiB: at most twice its size
+    assert pool.held == 1 << 20
     full = BodyPool(limit=1 << 20)
     full.give(bytearray(600_000))
     full.give(bytearray(600_000))  # over the limit: let go

@@ -228,8 +228,10 @@ class BodyPool:
         self._free: list[bytearray] = []
 
     def take(self, size: int) -> bytearray | None:
-        """The smallest kept buffer of at least ``size`` bytes, if there is one."""
-        fits = [i for i, buf in enumerate(self._free) if len(buf) >= size]
+        """The smallest kept buffer of ``size`` to twice ``size`` bytes, if there is one: a
+        small frame does not pin a much larger buffer (what it holds is counted by its
+        length, e.g. against the garbled-ahead budget)."""
+        fits = [i for i, buf in enumerate(self._free) if size <= len(buf) <= 2 * size]
         if not fits:
             return None
         buf = self._free.pop(min(fits, key=lambda i: len(self._free[i])))  # the closest fit
