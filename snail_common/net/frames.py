@@ -129,8 +129,7 @@ def lent(msg: Mapping[str, Any]) -> bool:
 def _decode(body: bytes | memoryview, lend: bool) -> dict[str, Any]:
     views: dict[bytes, memoryview] = {}
     if lend:
-        with memoryview(body) as whole:
-            body, views = _lift_bins(whole)
+        body, views = _lift_bins(memoryview(body))
     hooks = _Containers()
     try:
         msg = msgpack.unpackb(body, raw=False, strict_map_key=True, use_list=True,
@@ -353,6 +352,6 @@ class FrameReader:
         """Make the body buffer at least ``size`` bytes, keeping what it holds (a new
         buffer: the transport may still hold a view of the old one)."""
         if len(self._big) < size:  # whole 64 KiB: frames of about one size share buffers
-            bigger = bytearray(min(max(self.max_frame, size), -(-size // _ROUND) * _ROUND))
+            bigger = bytearray(max(size, min(self.max_frame, -(-size // _ROUND) * _ROUND)))
             bigger[: self._big_pos] = self._big[: self._big_pos]
             self._big = bigger
