@@ -398,7 +398,7 @@ class EvaluatorDaemon(Daemon):
         labels and when the labels arrived."""
         received, ahead, timeout = 0, 0, self.options.session_timeout
         laned = scheme_id(s.scheme) == SCHEME_HALF_GATES  # lanes batch half-gates sessions only
-        buffered: list[bytes] = []
+        buffered: list[bytes | memoryview] = []
         ev: Solo | EvalLane | None = None
         t_labels = time.monotonic()
         recv: asyncio.Future | None = None
@@ -415,7 +415,7 @@ class EvaluatorDaemon(Daemon):
                     ahead = received
                     self.ahead_buffered -= s.queued
                     s.queued = 0
-                    await self._feed(ev, frames)
+                    await self._feed(conn, ev, frames)
                     continue
                 if ev is None and self._queue_full(s):
                     await asyncio.wait({s.ready})  # full: the stream waits for the labels
@@ -442,7 +442,7 @@ class EvaluatorDaemon(Daemon):
                     self.ahead_buffered += len(msg["data"])
                     s.queued += len(msg["data"])
                 else:
-                    await self._feed(ev, [msg["data"]])
+                    await self._feed(conn, ev, [msg["data"]])
             try:
                 await asyncio.wait_for(ev.wait_done(), timeout)
             except asyncio.TimeoutError:
@@ -470,15 +470,20 @@ class EvaluatorDaemon(Daemon):
         peer_queued = sum(x.queued for x in self.sessions.values() if x.peer == s.peer)
         return peer_queued >= self.options.ahead_bytes_per_peer
 
-    async def _feed(self, ev: Solo | EvalLane, frames: list[bytes]) -> None:
-        """Evaluate ``frames`` in the worker pool."""
+    async def _feed(self, conn: Connection, ev: Solo | EvalLane,
+                    frames: list[bytes | memoryview]) -> None:
+        """Evaluate ``frames`` in the worker pool; then ``conn`` may receive into their
+        buffers again (evaluation keeps no view of them)."""
         try:
             await self.work(_feed_all, ev, frames)
         except StreamError as exc:
             raise ProtocolError(STREAM, str(exc)) from None
+        for data in frames:
+            if isinstance(data, memoryview):
+                conn.recycle(data)
 
 
-def _feed_all(ev: Solo | EvalLane, frames: list[bytes]) -> None:
+def _feed_all(ev: Solo | EvalLane, frames: list[bytes | memoryview]) -> None:
     for data in frames:
         ev.feed(data)
 

@@ -11,6 +11,7 @@ from snail_common.net import errors, messages
 from snail_common.net.frames import (
     MAX_FRAME,
     PROTOCOL_VERSION,
+    BodyPool,
     FrameReader,
     decode,
     encode,
@@ -219,3 +220,136 @@ def test_a_big_frame_header_alone_does_not_allocate_its_body():
     _feed(reader, struct.pack(">I", 4 << 20) + b"x" * 100)
     assert len(reader._big) <= FrameReader.SMALL
     assert reader.partial
+
+
+def _big_tables(fill: int, size: int = 300_000) -> dict:
+    return messages.make("tables", sid=SID, data=bytes([fill]) * size)
+
+
+def test_big_tables_are_views_of_the_receive_buffer_and_recycled_buffers_are_reused():
+    """A large ``tables`` frame is handed over as a view of the buffer TLS wrote it to
+    (no msgpack copy); frames still held keep their bytes while later ones arrive, and a
+    buffer handed back with ``recycle`` receives a later frame instead of fresh memory."""
+    reader = FrameReader()
+    first, second = _big_tables(1), _big_tables(2)
+    (a,) = [m for m, _ in _feed(reader, encode_bytes(first))]
+    (b,) = [m for m, _ in _feed(reader, encode_bytes(second))]
+    assert isinstance(a["data"], memoryview) and isinstance(b["data"], memoryview)
+    assert a["data"].obj is not b["data"].obj
+    assert a == first and b == second  # the first frame was not overwritten by the second
+    buffer = a["data"].obj
+    reader.recycle(a["data"])
+    (c,) = [m for m, _ in _feed(reader, encode_bytes(_big_tables(3)))]
+    assert c["data"].obj is buffer and c == _big_tables(3)
+    assert b == second
+
+
+def test_only_tables_are_lent_and_lifted_fields_are_still_checked():
+    """Other large frames (labels) are copied as before; a lifted field is validated and a
+    repeated key refused just as when msgpack decodes it whole."""
+    labels = messages.make("input_labels", sid=SID, start=0, total=20_000,
+                           labels=bytes(16 * 20_000))
+    (got,) = [m for m, _ in _feed(FrameReader(), encode_bytes(labels))]
+    assert isinstance(got["labels"], bytes) and got == labels
+    big = b"\xc6" + (100_000).to_bytes(4, "big") + bytes(100_000)
+    head = body({"v": 1, "t": "tables", "sid": SID})
+    for bad, code in [
+        (bytes([head[0] + 1]) + head[1:] + body("data") + big + body("data") + big,
+         errors.MALFORMED),  # "data" twice: one map entry too many
+        (bytes([head[0] + 2]) + head[1:] + body("data") + big + body("junk") + big,
+         errors.UNKNOWN_FIELD),
+        (body({"v": 1, "t": "tables", "data": b""})[:-2] + big, errors.MISSING_FIELD),
+    ]:
+        with pytest.raises(errors.ProtocolError) as info:
+            _feed(FrameReader(), struct.pack(">I", len(bad)) + bad)
+        assert info.value.code == code
+
+
+def test_a_shared_pool_hands_recycled_bodies_to_other_connections_within_its_limit():
+    """Readers sharing a BodyPool (a daemon's connections) receive into bodies another one
+    recycled, the closest fit first and never one over twice the frame; the pool keeps
+    at most its limit in bytes."""
+    pool = BodyPool(limit=2 << 20)
+    one, two = FrameReader(pool=pool), FrameReader(pool=pool)
+    (small,) = [m for m, _ in _feed(one, encode_bytes(_big_tables(1, 300_000)))]
+    (large,) = [m for m, _ in _feed(one, encode_bytes(_big_tables(2, 900_000)))]
+    one.recycle(large["data"])
+    one.recycle(small["data"])
+    assert pool.held == len(small["data"].obj) + len(large["data"].obj)
+    (got,) = [m for m, _ in _feed(two, encode_bytes(_big_tables(3, 290_000)))]
+    assert got["data"].obj is small["data"].obj and got == _big_tables(3, 290_000)
+    (got,) = [m for m, _ in _feed(two, encode_bytes(_big_tables(4, 800_000)))]
+    assert got["data"].obj is large["data"].obj and got == _big_tables(4, 800_000)
+    assert pool.held == 0
+    pool.give(bytearray(1 << 20))
+    (got,) = [m for m, _ in _feed(two, encode_bytes(_big_tables(5, 300_000)))]
+    assert len(got["data"].obj) < 1 << 19  # not the kept 1 MiB: at most twice its size
+    assert pool.held == 1 << 20
+    full = BodyPool(limit=1 << 20)
+    full.give(bytearray(600_000))
+    full.give(bytearray(600_000))  # over the limit: let go
+    assert full.held == 600_000
+
+
+class _Recorder:
+    """A transport that records what it is given, call by call."""
+
+    def __init__(self) -> None:
+        self.calls: list[list] = []
+
+    def get_extra_info(self, name, default=None):
+        return default
+
+    def set_write_buffer_limits(self, high=None, low=None) -> None:
+        pass
+
+    def is_closing(self) -> bool:
+        return False
+
+    def write(self, data) -> None:
+        self.calls.append([data])
+
+    def writelines(self, parts) -> None:
+        self.calls.append(list(parts))
+
+
+def test_a_frame_reaches_the_transport_in_one_call_with_its_data_uncopied():
+    """Length, header and table data in one transport call: TLS then makes one socket
+    write per frame instead of three (two of them a few bytes long)."""
+    from snail_common.net.conn import Connection
+
+    conn, transport = Connection(), _Recorder()
+    conn.connection_made(transport)
+    msg = messages.make("tables", sid=SID, data=memoryview(bytes(range(256)) * 300))
+    size = conn.write(msg)
+    (call,) = transport.calls
+    assert b"".join(call) == encode_bytes(msg) and size == len(encode_bytes(msg))
+    assert any(part is msg["data"] for part in call)
+
+
+def test_a_daemon_lets_its_recycled_bodies_go_once_idle(monkeypatch):
+    """Back-to-back sessions keep the pool; a daemon idle for BODIES_IDLE_S holds none of
+    it (its memory follows its load)."""
+    import asyncio
+    import logging
+
+    from snail_common.net import service
+
+    monkeypatch.setattr(service, "BODIES_IDLE_S", 0.05)
+    record = {"sid": SID, "circuit": "c", "n_and": 1, "bytes_in": 0, "bytes_out": 0,
+              "seconds": 0.0, "outcome": "ok"}
+
+    async def run() -> tuple[int, int]:
+        daemon = service.Daemon(service.Options(workers=1), logging.getLogger("test"))
+        daemon.bodies.give(bytearray(1 << 20))
+        daemon.counters["active"] = 1
+        daemon.finish("", record)  # idle now ...
+        daemon.counters["active"] = 1  # ... but the next session starts at once
+        await asyncio.sleep(0.1)
+        kept = daemon.bodies.held
+        daemon.finish("", record)
+        await asyncio.sleep(0.1)
+        daemon.pool.shutdown()
+        return kept, daemon.bodies.held
+
+    assert asyncio.run(run()) == (1 << 20, 0)

@@ -71,8 +71,10 @@ class Garbler:
             raise RuntimeError("the stream has not been garbled to its end yet")
         return self._outputs
 
-    def frames(self) -> Iterator[bytes]:
-        """The header, then frames of whole table blocks, each at most frame_bytes long."""
+    def frames(self) -> Iterator[bytes | memoryview]:
+        """The header, then frames of whole table blocks, each at most frame_bytes long.
+        A frame is a byte view of the array the blocks were garbled into (a new array per
+        frame, never written again: the frame goes to TLS without a copy)."""
         s, block = self._schedule, self.header.block_gates
         yield self.header.pack()
         labels = np.empty((s.n_slots, 2), np.uint64)
@@ -86,11 +88,11 @@ class Garbler:
         while m is not None:  # each block's tables go to the frame's next free rows
             w = table_words(scheme, m)
             if pos + w > len(frame):
-                yield frame[:pos].tobytes()
-                pos = 0
+                yield memoryview(frame[:pos]).cast("B")
+                frame, pos = np.empty_like(frame), 0
             tables = table_view(scheme, frame[pos : pos + w], m)
             pos += w
             m = next_block(run, tables)
         if pos:
-            yield frame[:pos].tobytes()
+            yield memoryview(frame[:pos]).cast("B")
         self._outputs = labels[s.output_slots].copy()

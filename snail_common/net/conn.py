@@ -43,7 +43,7 @@ from .errors import (
     ProtocolError,
     RemoteError,
 )
-from .frames import MAX_FRAME, FrameReader, encode
+from .frames import MAX_FRAME, BodyPool, FrameReader, encode
 from .tls import Identity, peer_identity
 
 SOFTWARE = "snail/0.1"
@@ -76,7 +76,7 @@ class Connection(asyncio.BufferedProtocol):
 
     def __init__(self, max_frame: int = MAX_FRAME, inbox: int = INBOX,
                  on_open: Callable[[Connection], None] | None = None,
-                 frame_timeout: float | None = None) -> None:
+                 frame_timeout: float | None = None, pool: BodyPool | None = None) -> None:
         self.peer_role = ""  # from the certificate, once connected
         self.identity: Identity | None = None
         self.frame_timeout = frame_timeout  # a begun frame must be complete within this
@@ -85,7 +85,7 @@ class Connection(asyncio.BufferedProtocol):
         self.info: dict[str, Any] = {}  # the peer's hello or capabilities
         self.bytes_in = 0
         self.bytes_out = 0
-        self._frames = FrameReader(max_frame)
+        self._frames = FrameReader(max_frame, pool)
         self._inbox: asyncio.Queue = asyncio.Queue()
         self._inbox_size = inbox
         self._reading_paused = False
@@ -245,15 +245,21 @@ class Connection(asyncio.BufferedProtocol):
         return msg
 
     def write(self, msg: dict[str, Any]) -> int:
-        """Queue one frame without waiting (frames are never interleaved); its size."""
+        """Queue one frame without waiting (frames are never interleaved); its size. The
+        frame's buffers go to the transport in one call: TLS encrypts them and hands the
+        socket one write, not one per buffer (length, header, table data)."""
         if self._lost is not None or self.transport is None or self.transport.is_closing():
             raise ConnectionClosed(f"the connection to the {self.peer_role} is closed")
         parts = encode(msg)
-        for part in parts:
-            self.transport.write(part)
+        self.transport.writelines(parts)
         size = sum(len(p) for p in parts)
         self.bytes_out += size
         return size
+
+    def recycle(self, data: memoryview) -> None:
+        """Hand back the data of a received ``tables`` frame once nothing reads it any
+        more: the next frame is received into its buffer (frames.FrameReader)."""
+        self._frames.recycle(data)
 
     def post(self, msg: dict[str, Any]) -> None:
         """Write a notice if the connection is still open (errors to a peer that may

@@ -6,7 +6,9 @@ is read; the body must be exactly one msgpack map with string keys, no duplicate
 no extension types (msgpack never builds objects beyond plain data, and pickle is never
 used); the version must match and the message must fit the schema. Every violation is a
 ProtocolError naming it. Large binary fields (garbled tables, labels) are written as a
-separate buffer after their msgpack header, so they are not copied into the frame.
+separate buffer after their msgpack header, so they are not copied into the frame; on the
+receiving side a large frame's ``tables`` data is a view of the buffer TLS decrypted it
+into, not a copy (FrameReader, ``lent``).
 """
 
 from __future__ import annotations
@@ -26,20 +28,21 @@ LENGTH = struct.Struct(">I")
 _INLINE_BIN = 1 << 14  # shorter binary fields are packed inline
 
 
-def encode(msg: Mapping[str, Any]) -> list[bytes]:
-    """The frame of ``msg`` (a dict from messages.make) as buffers to write in order."""
+def encode(msg: Mapping[str, Any]) -> list[bytes | memoryview]:
+    """The frame of ``msg`` (a dict from messages.make) as buffers to write in order; a
+    large binary field (bytes or a byte memoryview) is one of them, uncopied."""
     packer = msgpack.Packer(use_bin_type=True, autoreset=True)
     parts: list[bytes] = []
     head = bytearray(packer.pack_map_header(len(msg) + 1))
     head += packer.pack("v") + packer.pack(PROTOCOL_VERSION)
     for key, value in msg.items():
         head += packer.pack(key)
-        if isinstance(value, bytes) and len(value) > _INLINE_BIN:
+        if isinstance(value, (bytes, memoryview)) and len(value) > _INLINE_BIN:
             head += _bin_header(len(value))
             parts += [bytes(head), value]
             head = bytearray()
         else:
-            head += packer.pack(value)
+            head += packer.pack(bytes(value) if isinstance(value, memoryview) else value)
     if head:
         parts.append(bytes(head))
     size = sum(len(p) for p in parts)
@@ -97,17 +100,36 @@ class _Containers:
         return items
 
 
-def decode(body: bytes | memoryview) -> dict[str, Any]:
-    """A frame body -> the validated message (without ``v``). A refusal carries no
-    traceback: a connection keeps its last error, and a traceback would keep what the
-    frame decoded to."""
+LENT = frozenset({"tables"})  # messages whose large binary fields may be views of the body
+_BIN_LEN = {0xC4: 1, 0xC5: 2, 0xC6: 4}  # msgpack bin 8/16/32: bytes of the length
+_STR_LEN = {0xD9: 1, 0xDA: 2, 0xDB: 4}
+_FIXED = {0xC0: 0, 0xC2: 0, 0xC3: 0, 0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8,
+          0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8}  # nil, bools, numbers: bytes after the tag
+_EMPTY_BIN = b"\xc4\x00"
+_ROUND = 64 << 10  # body buffers are whole multiples of this
+
+
+def decode(body: bytes | memoryview, lend: bool = False) -> dict[str, Any]:
+    """A frame body -> the validated message (without ``v``). With ``lend``, the large
+    binary fields of a ``LENT`` message are views of ``body`` (which must then stay
+    untouched while they are used), not copies. A refusal carries no traceback: a
+    connection keeps its last error, and a traceback would keep what the frame decoded
+    to."""
     try:
-        return _decode(body)
+        return _decode(body, lend)
     except ProtocolError as exc:
         raise exc.with_traceback(None) from None
 
 
-def _decode(body: bytes | memoryview) -> dict[str, Any]:
+def lent(msg: Mapping[str, Any]) -> bool:
+    """Whether ``msg`` holds views of the frame buffer it was decoded from."""
+    return any(isinstance(v, memoryview) for v in msg.values())
+
+
+def _decode(body: bytes | memoryview, lend: bool) -> dict[str, Any]:
+    views: dict[bytes, memoryview] = {}
+    if lend:
+        body, views = _lift_bins(memoryview(body))
     hooks = _Containers()
     try:
         msg = msgpack.unpackb(body, raw=False, strict_map_key=True, use_list=True,
@@ -119,6 +141,9 @@ def _decode(body: bytes | memoryview) -> dict[str, Any]:
         raise ProtocolError(MALFORMED, f"frame is not valid msgpack: {exc}") from None
     if not isinstance(msg, dict):
         raise ProtocolError(MALFORMED, f"frame holds a {type(msg).__name__}, not a map")
+    for key, view in views.items():  # the lifted fields, as views or (not lent) copies
+        name = msgpack.unpackb(key, raw=False)
+        msg[name] = view if msg.get("t") in LENT else bytes(view)
     version = msg.pop("v", None)
     if version != PROTOCOL_VERSION:
         raise ProtocolError(VERSION, f"protocol version {version!r} is not supported "
@@ -127,9 +152,101 @@ def _decode(body: bytes | memoryview) -> dict[str, Any]:
     return msg
 
 
+def _lift_bins(body: memoryview) -> tuple[bytes | memoryview, dict[bytes, memoryview]]:
+    """A flat top-level map with its large bin values cut out: the body with each one
+    replaced by an empty bin (for msgpack's strict decoding) and the views of them by
+    packed key. Anything else (a nested value, a short or cut frame) is left whole to
+    msgpack, which decodes or refuses it as before."""
+    size = len(body)
+    if size < 3 or not (0x80 <= body[0] <= 0x8F or body[0] == 0xDE):
+        return body, {}
+    pairs, pos = (body[0] & 0x0F, 1) if body[0] != 0xDE else (
+        int.from_bytes(body[1:3], "big"), 3)
+    parts: list[memoryview | bytes] = []
+    views: dict[bytes, memoryview] = {}
+    start = 0  # of the body not yet in parts
+    for _ in range(pairs):
+        key = pos
+        pos = _scalar_end(body, key)
+        if pos is None or pos >= size:
+            return body, {}
+        tag = body[pos]
+        if tag in _BIN_LEN:
+            width = _BIN_LEN[tag]
+            n = int.from_bytes(body[pos + 1 : pos + 1 + width], "big")
+            data = pos + 1 + width
+            if n > _INLINE_BIN and data + n <= size:
+                parts += [body[start:pos], _EMPTY_BIN]
+                views[bytes(body[key:pos])] = body[data : data + n]
+                pos = start = data + n
+                continue
+        pos = _scalar_end(body, pos)
+        if pos is None:
+            return body, {}
+    if not views:
+        return body, {}
+    parts.append(body[start:])
+    return b"".join(parts), views
+
+
+def _scalar_end(body: memoryview, pos: int) -> int | None:
+    """Where the msgpack scalar (nil, bool, number, str, bin) at ``pos`` ends; None for
+    anything else or past the end."""
+    if pos >= len(body):
+        return None
+    tag = body[pos]
+    if tag <= 0x7F or tag >= 0xE0:  # fixint
+        end = pos + 1
+    elif 0xA0 <= tag <= 0xBF:  # fixstr
+        end = pos + 1 + (tag & 0x1F)
+    elif tag in _FIXED:
+        end = pos + 1 + _FIXED[tag]
+    elif tag in _BIN_LEN or tag in _STR_LEN:
+        width = _BIN_LEN.get(tag) or _STR_LEN[tag]
+        end = pos + 1 + width + int.from_bytes(body[pos + 1 : pos + 1 + width], "big")
+    else:
+        return None
+    return end if end <= len(body) else None
+
+
 def _oversize(length: int, max_frame: int) -> ProtocolError:
     return ProtocolError(OVERSIZE, f"frame of {length} bytes exceeds the maximum of "
                                    f"{max_frame}")
+
+
+class BodyPool:
+    """Received frame bodies kept for later frames of the connections that share it, up to
+    ``limit`` bytes: a buffer that comes back is memory already mapped, where a new one
+    is fresh pages the kernel faults in and zeroes (at n = 256 most of the evaluator's
+    page faults). It never makes a reader hold more: a buffer is only taken in place of
+    one the reader would allocate."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.held = 0
+        self._free: list[bytearray] = []
+
+    def take(self, size: int) -> bytearray | None:
+        """The smallest kept buffer of ``size`` to twice ``size`` bytes, if there is one: a
+        small frame does not pin a much larger buffer (what it holds is counted by its
+        length, e.g. against the garbled-ahead budget)."""
+        fits = [i for i, buf in enumerate(self._free) if size <= len(buf) <= 2 * size]
+        if not fits:
+            return None
+        buf = self._free.pop(min(fits, key=lambda i: len(self._free[i])))  # the closest fit
+        self.held -= len(buf)
+        return buf
+
+    def clear(self) -> None:
+        """Let every kept buffer go (an idle daemon's memory follows its load)."""
+        self._free.clear()
+        self.held = 0
+
+    def give(self, buf: bytearray) -> None:
+        """Keep ``buf`` (no view of it may be read or written any more) if it fits."""
+        if self.held + len(buf) <= self.limit and all(b is not buf for b in self._free):
+            self._free.append(buf)
+            self.held += len(buf)
 
 
 class FrameReader:
@@ -137,19 +254,23 @@ class FrameReader:
     ``buffer()``, ``filled(n)`` decodes the frames those bytes complete.
 
     Small frames share one buffer; a larger frame body (garbled tables) goes to a
-    dedicated, reused buffer, so the bytes are written once by TLS and copied once by
-    msgpack. That buffer grows with the bytes that arrive (doubling, up to the announced
-    length), not with what a header announces: a peer must send what it makes this side
-    hold. The length is checked before any of the body is accepted, so an oversized frame
-    costs nothing.
+    dedicated buffer, so the bytes are written once by TLS. A ``tables`` frame's data is
+    then a view of that buffer: the frame keeps it, and the consumer may hand it back with
+    ``recycle`` once done, to a BodyPool the next bodies are received into. Other frames
+    are copied once by msgpack and the buffer is reused. A body buffer grows with the
+    bytes that arrive (doubling, up to the announced length), not with what a header
+    announces: a peer must send what it makes this side hold. The length is checked
+    before any of the body is accepted, so an oversized frame costs nothing.
     """
 
     SMALL = 256 << 10
     BIG = 16 << 10  # incomplete frames longer than this go to the dedicated buffer
     MIN_FREE = 16 << 10
+    POOL = 4 << 20  # bytes of recycled bodies a reader of its own keeps
 
-    def __init__(self, max_frame: int = MAX_FRAME) -> None:
+    def __init__(self, max_frame: int = MAX_FRAME, pool: BodyPool | None = None) -> None:
         self.max_frame = max_frame
+        self._pool = pool if pool is not None else BodyPool(self.POOL)
         self._small = bytearray(self.SMALL)
         self._start = self._end = 0
         self._big = bytearray(0)
@@ -182,8 +303,10 @@ class FrameReader:
             if self._big_pos < self._big_len:
                 return []
             length, self._big_len = self._big_len, 0
-            with memoryview(self._big) as view:
-                return [(decode(view[:length]), LENGTH.size + length)] + self._parse()
+            msg = decode(memoryview(self._big)[:length], lend=True)
+            if lent(msg):  # the frame keeps this buffer; the next body takes another
+                self._big = bytearray(0)
+            return [(msg, LENGTH.size + length)] + self._parse()
         self._end += n
         return self._parse()
 
@@ -202,6 +325,8 @@ class FrameReader:
                 self._start = body + length
             elif length > self.BIG:
                 self._big_pos = 0
+                if len(self._big) < length:  # a recycled body that holds it all, or grow
+                    self._big = self._pool.take(length) or self._big
                 self._grow(min(length, max(2 * have, self.SMALL)))
                 self._big[:have] = buf[body : self._end]
                 self._big_len, self._big_pos = length, have
@@ -214,13 +339,19 @@ class FrameReader:
         return out
 
     def release(self) -> None:
-        """Drop the body buffer (after a refused frame: nothing more will be read)."""
+        """Drop the body buffers (after a refused frame: nothing more will be read)."""
         self._big, self._big_len, self._big_pos = bytearray(0), 0, 0
+
+    def recycle(self, data: memoryview) -> None:
+        """Take back the buffer under ``data``, a view from a ``tables`` frame this reader
+        decoded, once nothing reads it any more (it will be overwritten)."""
+        if isinstance(data.obj, bytearray) and data.obj is not self._big:
+            self._pool.give(data.obj)
 
     def _grow(self, size: int) -> None:
         """Make the body buffer at least ``size`` bytes, keeping what it holds (a new
         buffer: the transport may still hold a view of the old one)."""
-        if len(self._big) < size:
-            bigger = bytearray(size)
+        if len(self._big) < size:  # whole 64 KiB: frames of about one size share buffers
+            bigger = bytearray(max(size, min(self.max_frame, -(-size // _ROUND) * _ROUND)))
             bigger[: self._big_pos] = self._big[: self._big_pos]
             self._big = bigger

@@ -73,7 +73,7 @@ def _fail(name: str, what: str, value: Any) -> None:
 
 
 def _show(value: Any) -> str:
-    if isinstance(value, (bytes, bytearray)):
+    if isinstance(value, (bytes, bytearray, memoryview)):
         return f"{len(value)} bytes"
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
@@ -93,8 +93,10 @@ def count(name: str, v: Any) -> None:
 
 def blob(size: int | None = None, multiple: int = 1,
          max_size: int | None = None) -> Validator:
+    """Binary: bytes, or a flat byte memoryview (table data sent or received uncopied)."""
     def check(name: str, v: Any) -> None:
-        if not isinstance(v, bytes):
+        if not isinstance(v, bytes) and not (
+                isinstance(v, memoryview) and v.format == "B" and v.ndim == 1 and v.contiguous):
             _fail(name, "binary", v)
         if size is not None and len(v) != size:
             _fail(name, f"{size} bytes", v)

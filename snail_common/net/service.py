@@ -50,7 +50,7 @@ from .errors import (
     ProtocolError,
     RemoteError,
 )
-from .frames import MAX_FRAME
+from .frames import MAX_FRAME, BodyPool
 from .heap import HeapTrimmer
 from .logs import announce, event
 from .metrics import OK, Metrics
@@ -94,6 +94,9 @@ class Options:
     metrics: tuple[str, int] | None = None  # HTTPS endpoint for /metrics and /health
 
 
+BODIES_IDLE_S = 1.0  # recycled table frames are dropped once the daemon is idle this long
+
+
 class Daemon:
     """Base of the daemons; a subclass serves each certificate role of ``allowed`` in a
     method ``_serve_<role>(conn)`` that returns once the connection is done (or
@@ -108,6 +111,9 @@ class Daemon:
         self.log = logger
         self.pool = ThreadPoolExecutor(options.workers, thread_name_prefix=self.role)
         self.connections: set[Connection] = set()
+        # received table frames kept for the next ones while sessions run, at most the
+        # garbled-ahead budget (what buffered frames may hold anyway)
+        self.bodies = BodyPool(options.ahead_bytes)
         self._tasks: set[asyncio.Task] = set()
         self._planned: dict[str, int] = {}  # circuit id -> id() of the planned schedule
         self.metrics = Metrics(self.role, lambda: len(self.connections))
@@ -215,12 +221,20 @@ class Daemon:
     def finish(self, peer: str, record: dict[str, Any]) -> None:
         """Free an admitted session and log its line (see ``log_session``)."""
         self.counters["active"] -= 1
+        if not self.counters["active"]:  # still idle a moment later: give the frames back
+            asyncio.get_running_loop().call_later(BODIES_IDLE_S, self._release_bodies)
         self.heap.session_ended()
         if peer:
             self._peer_sessions[peer] -= 1
             if self._peer_sessions[peer] <= 0:
                 del self._peer_sessions[peer]
         self.log_session(peer=peer, **record)
+
+    def _release_bodies(self) -> None:
+        """An idle daemon keeps no recycled table frames: its memory follows its load (the
+        next trim returns them), while back-to-back invocations reuse them."""
+        if not self.counters["active"]:
+            self.bodies.clear()
 
     def log_session(self, *, peer: str, sid: bytes, circuit: str, n_and: int,
                     bytes_in: int, bytes_out: int, seconds: float, outcome: str,
@@ -323,7 +337,7 @@ class Daemon:
         _audit_handshakes(ctx, self._refused)
         server = await loop.create_server(
             lambda: Connection(MAX_FRAME, on_open=self._opened,
-                               frame_timeout=self.options.session_timeout),
+                               frame_timeout=self.options.session_timeout, pool=self.bodies),
             host, port, ssl=ctx,
             ssl_handshake_timeout=self.options.handshake_timeout)
         for sock in server.sockets:  # accepted links inherit it (conn.py module doc)
