@@ -29,17 +29,22 @@ from snail_common.pnp.normal_fixed import (
     D_COST,
     EMAX_A,
     F_W,
+    H_SHIFT,
     T_BITS,
     W_A,
     W_C,
     W_MAP,
     W_RC,
+    W_RS,
     camera_points_fixed,
     decode,
+    map_block,
+    map_fixed,
     normal_equations_fixed,
     weight_unit,
     weights_fixed,
 )
+from snail_common.pnp.sil import input_shapes
 from snail_common.pnp.spec import Spec, build, run_mirror
 
 N = 7
@@ -286,6 +291,39 @@ def test_the_mirror_is_the_arithmetic_it_claims():
     np.testing.assert_array_equal(blk.m, np.floor(np.abs(v) / 2.0 ** (128 - 15 - 126)))
 
 
+def test_the_client_passes_the_map_as_block_fixed_point():
+    """nx-sil takes the map as the integers the in-circuit family converts it to (map_fixed:
+    W_MAP-bit magnitudes at the largest exponent, the sign in bit W_MAP, the exponent
+    apart), not as float32: the same sums and cost, bit for bit, for ~0.65 k AND per point
+    less (the float map stays a value for the float64 backend, never a circuit input)."""
+    shapes = input_shapes("lm", N, "client", "fixed")
+    assert "world" not in shapes and shapes["wmap"] == (N, 3) and shapes["emap"] == ()
+    assert "world" in input_shapes("lm", N, "ldlt", "fixed")  # the in-circuit family
+    rng = np.random.default_rng(12)
+    fm = FloatMirror()
+    for i in range(4):
+        values = random_values(SPEC, rng)
+        values.pop("lam")
+        if i == 1:  # a far point, a negative zero, a subnormal
+            values["world"][:3] = [[3e3, -2e3, 50.0], [-0.0, 1.0, -2.0], [1e-40, -1.0, 0.5]]
+        world = values["world"]
+        wmap, emap = map_fixed(world)
+        assert wmap.dtype == np.uint32 and int(wmap.max()) < 1 << (W_MAP + 1)
+        assert int(emap) == int(((world.view(np.uint32) >> 23) & 0xFF).max())
+        unit = 2.0 ** (int(emap) - W_MAP - 126)
+        got = np.where(wmap >> W_MAP, -1.0, 1.0) * (wmap & ((1 << W_MAP) - 1)) * unit
+        assert np.all((wmap >> W_MAP) == np.signbit(world))
+        assert np.all(np.abs(got - world) < unit) and np.all(np.abs(got) <= np.abs(world))
+        values["wfix"] = weights_fixed(values["weights"])
+        x = {k: F(fm, np.asarray(v, np.float32)) for k, v in values.items()}
+        want = normal_equations_fixed(x["R"], x["t"], x["image"], map_block(x["world"]),
+                                      x["weights"], values["wfix"], H_SHIFT, W_RS)
+        values["wmap"], values["emap"] = wmap, emap
+        out = run_mirror(SPEC, {k: v for k, v in values.items() if k != "world"})
+        for name, w in zip(("hess", "grad", "cost", "ec", "er"), want, strict=True):
+            assert np.array_equal(out[name], np.asarray(getattr(w, "v", w))), (i, name)
+
+
 def test_cleartext_equals_mirror_on_random_iterations(compiled):
     circuit, schedule = compiled
     assert [g.name for g in circuit.inputs][-1] == "wfix"
@@ -306,6 +344,7 @@ def test_cleartext_equals_mirror_on_random_iterations(compiled):
             values["world"][0] = [3e3, -2e3, 50.0]
             values["image"][1] = [3e4, -3e4]
         values["wfix"] = weights_fixed(values["weights"])
+        values["wmap"], values["emap"] = map_fixed(values.pop("world"))
         out = evaluate(circuit, values, schedule=schedule)
         mirror = run_mirror(SPEC, values)
         for name, got in out.items():
@@ -335,8 +374,8 @@ def test_the_fixed_point_cost_is_within_its_bound():
             values["weights"][:, 1] *= np.float32(rng.uniform(0.2, 1.0))  # fx != fy
         wfix = weights_fixed(values["weights"])
         x = {k: F(fm, np.asarray(v, np.float32)) for k, v in values.items()}
-        _, _, cost, ec, er = normal_equations_fixed(x["R"], x["t"], x["image"], x["world"],
-                                                    x["weights"], wfix)
+        _, _, cost, ec, er = normal_equations_fixed(x["R"], x["t"], x["image"],
+                                                    map_block(x["world"]), x["weights"], wfix)
         xc = camera_points_fixed(x["R"], x["t"], x["world"])
         err = xc[:, 0:2] / xc[:, 2:3] - x["image"]
         unit = 2.0 ** (int(er) - W_RC - 126)

@@ -9,7 +9,11 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   centered with unit RMS radius (preprocess.py), but a map owner's selection can reach
   far out, so the map enters as block floating point (one exponent for all its
   coordinates) and t at the same scale with T_BITS more integer bits: it saturates only
-  for a camera 2^11 map radii away, where no point spread could be resolved anyway;
+  for a camera 2^11 map radii away, where no point spread could be resolved anyway.
+  Where the client solves, it passes the map in that form (``map_fixed``: the integers
+  the circuit would compute, so the same sums bit for bit), which saves the conversion,
+  0.65 k AND per point (the in-circuit family and the map owner's ``-mo`` keep the
+  float32 map);
 - float32: the projections a = x/z, b = y/z, each one correctly rounded division (two
   divisions cost 0.3 k AND per point less than 1/z and two products, and round once),
   and the residuals r = a - u, whose float32 rounding of a, about 2^-24 |a| against
@@ -74,8 +78,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fixed import SCALE_BIAS, TC, fix_backend
-from .fops import F, concat
+from .fixed import SCALE_BIAS, SM, TC, fix_backend
+from .fops import F, MirrorBackend, concat
 from .normal import UPPER
 
 F_A = 13  # fraction bits of the projections a = x/z, b = y/z
@@ -129,7 +133,28 @@ def _gather(fx, terms: TC, n: int, sources: tuple[list, list]) -> TC:
     return fx.concat_tc(rows, 0)
 
 
+def map_block(world: F) -> tuple[SM, object]:
+    """The map as block floating point: W_MAP-bit magnitudes at the scale of its largest
+    exponent, and that exponent."""
+    fx = fix_backend(world)
+    ew = fx.block_emax(world)
+    return fx.from_float(world, ew, W_MAP), ew
+
+
+def map_fixed(world: np.ndarray) -> tuple[np.ndarray, np.uint8]:
+    """The ``wmap`` and ``emap`` inputs of the circuit the client solves: map_block of the
+    float32 map computed in the clear (the circuit would compute the same integers, for
+    ~0.65 k AND per point), the sign in bit W_MAP."""
+    pts, ew = map_block(F(MirrorBackend(), np.asarray(world, np.float32)))
+    return (pts.m | (pts.s << W_MAP)).astype(np.uint32), np.uint8(ew)
+
+
 def camera_points_fixed(R: F, t: F, world: F) -> F:
+    """camera_points_block of the float32 map (map_block)."""
+    return camera_points_block(R, t, *map_block(world))
+
+
+def camera_points_block(R: F, t: F, pts: SM, ew) -> F:
     """X_c = R X + t (n, 3) as float32, computed in fixed point: the map as block floating
     point (its largest exponent ew, W_MAP bits), R at the public scale 2^-F_ROT, t at the
     map's scale with T_BITS more integer bits (saturating beyond), exact integer sums,
@@ -143,9 +168,7 @@ def camera_points_fixed(R: F, t: F, world: F) -> F:
     19 v + 2^-24 |X_c| (tests/test_loc_fixed.py). float32 is within a few 2^-24 (M + |t|).
     """
     fx = fix_backend(R)
-    ew = fx.block_emax(world)
     rot = fx.from_float(R, SCALE_BIAS + 1, F_ROT + 1)  # magnitudes of 1.0 are 2^F_ROT
-    pts = fx.from_float(world, ew, W_MAP)
     trans = fx.twos(fx.from_float(t, fx.exponent_plus(ew, T_BITS), W_MAP + T_BITS))
     prods = fx.mul_cut(rot[None], pts[:, None, :], F_ROT, F_ROT - GUARD, W_MAP + 1)  # (n, 3, 3)
     rx = fx.sum_tc(fx.stack_tc([fx.index_tc(prods, (slice(None), slice(None), j))
@@ -153,14 +176,15 @@ def camera_points_fixed(R: F, t: F, world: F) -> F:
     return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_MAP)
 
 
-def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
-                           h_shift: int = 0, r_bits: int = W_R):
-    """(hess (21,), grad (6,), cost (), ec, er), all integers: module doc. ``wfix`` is the
+def normal_equations_fixed(R: F, t: F, image: F, block: tuple[SM, object], weights: F,
+                           wfix, h_shift: int = 0, r_bits: int = W_R):
+    """(hess (21,), grad (6,), cost (), ec, er), all integers: module doc. ``block`` is the
+    map as map_block gives it (the client passes it as integers: ``map_fixed``); ``wfix`` is the
     (n, 2) integer square roots of the weights (mirror: int64; circuit: W_W-bit input
     words), which the cost uses too: ``weights`` is not read. J^T W J takes the
     Jacobian's magnitudes ``h_shift`` bits shorter and J^T W r the residuals at
     ``r_bits`` (H_SHIFT and W_RS where the client solves)."""
-    xc = camera_points_fixed(R, t, world)
+    xc = camera_points_block(R, t, *block)
     proj = xc[:, 0:2] / xc[:, 2:3]  # a = x/z, b = y/z correctly rounded
     err = proj - image
     fx = fix_backend(R)
