@@ -274,7 +274,7 @@ def test_camera_points_in_fixed_point_match_the_mirror_and_their_error_bound():
         if np.abs(v["t"]).max() >= 2.0 ** T_BITS * top or not 2.0 ** -100 < top < 2.0 ** 100:
             continue
         exact = v["world"] @ v["R"].T + v["t"]
-        bound = 19 * 2.0 ** -(W_MAP - 1) * top + 2.0 ** -24 * np.abs(exact)
+        bound = 12.5 * 2.0 ** -(W_MAP - 1) * top + 2.0 ** -24 * np.abs(exact)
         assert np.all(np.abs(want - exact) <= bound), i
 
 
@@ -435,27 +435,28 @@ def _and_gates(n: int) -> int:
                                 == AND))
 
 
-def test_a_point_costs_at_most_23_9_k_and_gates():
+def test_a_point_costs_at_most_23_4_k_and_gates():
     """Per point of nx-sil above SHALLOW_POINTS (n = 36 to 40): 29.0 k AND with float32
     per-point costs, 1/z and x (1/z); 26.0 k with the cost in fixed point, x/z, y/z
     divided and 1/z as block fixed point (recip_block), 25.6 k with J^T W r's residuals
     at 13 bits (W_RS), 25.0 k with sqrt(w) folded into the Jacobian's factors, 24.4 k
     with the map passed as integers (map_fixed), 23.9 k with the cost's residuals at
-    W_RC = 20 bits. Up to 32 points, where divisions are depth-optimized (n = 4 to 8),
-    31.1 k then and 29.4 k now: two shallow divisions cost more than one and two
-    products, for a shorter path."""
-    assert (_and_gates(40) - _and_gates(36)) / 4 <= 23_900
-    assert (_and_gates(8) - _and_gates(4)) / 4 <= 29_500
+    W_RC = 20 bits, 23.3 k with the map at W_MAP = 24 bits and R X's products at 25
+    (W_XC). Up to 32 points, where divisions are depth-optimized (n = 4 to 8), 31.1 k then
+    and 28.9 k now: two shallow divisions cost more than one and two products, for a
+    shorter path."""
+    assert (_and_gates(40) - _and_gates(36)) / 4 <= 23_400
+    assert (_and_gates(8) - _and_gates(4)) / 4 <= 29_000
 
 
 def test_the_cost_resolves_a_relative_change_of_1e_4():
-    """The fixed-point cost (W_RC = 20 bits of the largest residual, W_MAP-bit map) at
-    OpenCV's optimum of random scenes (n = 4 to 256, a quarter planar) is within 1.5e-4
-    of the float64 cost (measured over 200 scenes: median 8.5e-6, largest 1.2e-4, as with
-    24-bit residuals: 5.2e-6 and 1.2e-4; the float32 projections set it; a 24-bit map
-    gave 1.6e-5 and 2.7e-4 and missed a rise), and a pose whose float64 cost is 1e-4
-    higher, on either side along one direction, costs more: driver.py's cost_tol stays
-    resolved."""
+    """The fixed-point cost (W_RC = 20 bits of the largest residual, a W_MAP = 24-bit map)
+    at OpenCV's optimum of random scenes (n = 4 to 256, a quarter planar) is within 2.5e-4
+    of the float64 cost (measured over 200 scenes: median 1.4e-5, 99th percentile 1.8e-4,
+    largest 2.0e-4; with a 26-bit map 8.5e-6, 6.7e-5 and 1.2e-4; most of the difference
+    is the map's quantization, the same at every pose), and a pose whose float64 cost is
+    1e-4 higher, on either side along one direction, costs more: driver.py's cost_tol
+    stays resolved."""
     rng = np.random.default_rng(5)
     rels = []
     direction = np.array([0.3, -0.2, 1.0])
@@ -480,7 +481,7 @@ def test_the_cost_resolves_a_relative_change_of_1e_4():
                 up = costs(Pose(pose.R, pose.t + sign * mid * direction))[0] >= c64 * (1 + 1e-4)
                 lo, hi = (lo, mid) if up else (mid, hi)
             assert costs(Pose(pose.R, pose.t + sign * hi * direction))[1] > cfx, (k, sign)
-    assert max(rels) <= 1.5e-4 and float(np.median(rels)) <= 2e-5
+    assert max(rels) <= 2.5e-4 and float(np.median(rels)) <= 3e-5
 
 
 def test_weights_fixed_normalizes_to_the_largest():

@@ -2,10 +2,20 @@
 
 Same quantities as normal.py, computed differently where precision allows (fixed.py):
 - camera points R X + t in fixed point, rounded once to float32 (``camera_points_fixed``):
-  truncated integer products (fixed.mul_cut) and exact sums cost 7.1 k AND per point
-  against 12.9 k for float32, with a cost as precise (against float64, 200 scenes at
-  their optimum: median relative error 8.9e-6 and largest 6.6e-5, float32 camera points
-  6.0e-6 and 5.1e-5; a relative change of 1e-4 stays resolved). The client's map is
+  truncated integer products (fixed.mul_cut) and exact sums cost 5.8 k AND per point
+  (7.1 k with a 26-bit map and products at its unit, GUARD 3) against 12.9 k for
+  float32. The map is taken at W_MAP = 24 bits: its truncation is the same at every pose
+  (a map moved by 2^-23 of its radius, far below any map's own error), so it shifts the
+  cost by a smooth amount: against float64 at OpenCV's optimum (200 scenes) the median
+  relative error is 1.4e-5 and the largest 2.0e-4 (8.5e-6 and 1.2e-4 with 26 bits), but
+  along a line of rotations through the optimum the cost's departure from a smooth
+  parabola (what decides an accept/reject) has a median of 7.3e-6 and a largest of
+  7.9e-5 of the cost (26 bits: 6.0e-6 and 6.5e-5; a 24-bit map with products at its
+  unit: 1.2e-5 and 9.9e-5, hence W_XC), and a relative rise of 1e-4 is always seen
+  (test_the_cost_resolves_a_relative_change_of_1e_4). 1,000 scenes per algorithm: seeds
+  1 and 3 and the in-circuit solve (seed 1) as with 26 bits; seed 2 lost GN scene 54
+  (n = 4, planar, at the 20-iteration cap with 26 bits too: 0.466 px against OpenCV's
+  0.421). The client's map is
   centered with unit RMS radius (preprocess.py), but a map owner's selection can reach
   far out, so the map enters as block floating point (one exponent for all its
   coordinates) and t at the same scale with T_BITS more integer bits: it saturates only
@@ -107,9 +117,11 @@ DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 HESS_BITS = 31  # to_float's integers are at most 2^31 in magnitude (float_system)
 H_SHIFT = 3  # J^T W J's Jacobian magnitudes are this much shorter when the client solves
 F_ROT = 24  # fraction bits of the rotation entries: all of float32's for |r| in [1/2, 1]
-W_MAP = 26  # map coordinates, relative to the largest one's binade: 2 bits below float32's
-GUARD = 3  # R_ij X_j and J^T W r keep the partial products from GUARD bits below the
-# result's unit (fixed.mul_cut); J^T W J from H_GUARD bits below (3 lost GN scenes)
+W_MAP = 24  # map coordinates, relative to the largest one's binade (module doc)
+W_XC = W_MAP + 1  # camera points' bits at that binade: R X's products keep one bit more
+X_GUARD = 2  # R_ij X_j keeps the partial products from X_GUARD bits below its unit
+GUARD = 3  # J^T W r keeps the partial products from GUARD bits below the result's unit
+# (fixed.mul_cut); J^T W J from H_GUARD bits below (3 lost GN scenes)
 H_GUARD = 5
 T_BITS = 12  # the translation's headroom over that binade (module doc: camera points)
 
@@ -168,19 +180,22 @@ def camera_points_block(R: F, t: F, pts: SM, ew) -> F:
     one rounding to float32 per coordinate.
 
     Error bound, M the map's largest |coordinate| and v = 2^-(W_MAP - 1) M: the unit of
-    the map's magnitudes is at most v, so each product R_ij X_j is off by less than v (X
-    truncated) + 2^-F_ROT M = 2v (R truncated) + 3v (the product's floor and its partial
-    products below 2^-GUARD of its unit: 2 x 15 terms / 2^(GUARD + 1) < 2 units), t by
-    less than v: before the final rounding a coordinate is within 19 v, after it within
-    19 v + 2^-24 |X_c| (tests/test_loc_fixed.py). float32 is within a few 2^-24 (M + |t|).
+    the map's magnitudes is at most v, that of the products and of t v / 2 (W_XC), so
+    each product R_ij X_j is off by less than v (X truncated: the same for every pose, a
+    map moved by less than v) + 2^-F_ROT M = v / 2 (R truncated) + 2.5 v (the product's
+    floor and its partial products below 2^-X_GUARD of its unit: 2 x 13 terms /
+    2^(X_GUARD + 1) < 4 units), t by less than v / 2: before the final rounding a
+    coordinate is within 12.5 v, after it within 12.5 v + 2^-24 |X_c|
+    (tests/test_loc_fixed.py). float32 is within a few 2^-24 (M + |t|).
     """
     fx = fix_backend(R)
     rot = fx.from_float(R, SCALE_BIAS + 1, F_ROT + 1)  # magnitudes of 1.0 are 2^F_ROT
-    trans = fx.twos(fx.from_float(t, fx.exponent_plus(ew, T_BITS), W_MAP + T_BITS))
-    prods = fx.mul_cut(rot[None], pts[:, None, :], F_ROT, F_ROT - GUARD, W_MAP + 1)  # (n, 3, 3)
+    trans = fx.twos(fx.from_float(t, fx.exponent_plus(ew, T_BITS), W_XC + T_BITS))
+    drop = F_ROT + W_MAP - W_XC
+    prods = fx.mul_cut(rot[None], pts[:, None, :], drop, drop - X_GUARD, W_XC + 1)  # (n, 3, 3)
     rx = fx.sum_tc(fx.stack_tc([fx.index_tc(prods, (slice(None), slice(None), j))
                                 for j in range(3)], 0))
-    return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_MAP)
+    return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_XC)
 
 
 def normal_equations_fixed(R: F, t: F, image: F, block: tuple[SM, object], weights: F,
