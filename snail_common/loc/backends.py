@@ -23,7 +23,7 @@ from snail_common.circuit.schedule import Schedule
 from snail_common.pnp import family
 from snail_common.pnp.do import do_reference, normal_equations64, pinv_solve64
 from snail_common.pnp.normal import UPPER
-from snail_common.pnp.normal_fixed import decode, weight_unit, weights_fixed
+from snail_common.pnp.normal_fixed import decode, map_fixed, weight_unit, weights_fixed
 from snail_common.pnp.sil import CLIENT, ITERATION_INPUTS
 from snail_common.pnp.spec import Spec, integer_outputs, run_mirror
 
@@ -61,6 +61,8 @@ def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> Value
     values = {k: np.asarray(v, np.float64) for k, v in values.items()}
     if spec.arith == "fixed":
         values["wfix"] = weights_fixed(values["weights"])
+    if spec.arith == "fixed" and spec.solver == CLIENT:  # "world" stays for Float64Backend
+        values["wmap"], values["emap"] = map_fixed(values["world"])
     return values
 
 
@@ -84,9 +86,16 @@ def shared_bits(iface: Interface, frame: Values) -> tuple[np.ndarray, np.ndarray
     """Which input wires ``frame`` covers (bool mask) and their bits (zeros elsewhere)."""
     placeholders = {g.name: np.zeros(g.shape) for g in iface.inputs
                     if g.name not in frame}
-    bits = encode_inputs(iface, {**placeholders, **frame})[0]
+    bits = encode_inputs(iface, {**placeholders, **_own(iface, frame)})[0]
     mask = _wires(iface, frame.__contains__)
     return mask, bits & mask
+
+
+def _own(iface: Interface, values: Values) -> Values:
+    """The values the circuit takes: sil_values also carries the float32 map, which the
+    Float64Backend reads and a circuit taking the map as integers does not."""
+    names = {g.name for g in iface.inputs}
+    return {k: v for k, v in values.items() if k in names}
 
 
 def circuit_outputs(spec: Spec, values: Values, out: Values) -> Values:
@@ -186,6 +195,6 @@ class CircuitBackend(Backend):
 
     def _run(self, spec: Spec, values: Values) -> Values:
         iface = interface(spec)
-        bits = encode_inputs(iface, values)[0]
+        bits = encode_inputs(iface, _own(iface, values))[0]
         return circuit_outputs(spec, values,
                                decode_outputs(iface, self.runner(spec.registry_id, bits)))

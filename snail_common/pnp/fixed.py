@@ -108,6 +108,11 @@ class FixMirror:
         mags = np.asarray(x, np.int64)
         return SM(np.zeros_like(mags), mags, width)
 
+    def sign_magnitude(self, x, width: int) -> SM:
+        """Integers (an input) of ``width`` magnitude bits with the sign in bit ``width``."""
+        words = np.asarray(x, np.int64)
+        return SM((words >> width) & 1, words & ((1 << width) - 1), width)
+
     def zeros_tc(self, lead: tuple[int, ...], width: int) -> TC:
         return TC(np.zeros(lead, np.int64), width)
 
@@ -295,6 +300,10 @@ class FixCircuit:
     def unsigned(self, x, width: int) -> SM:
         mags = zext(np.asarray(x), width)
         return SM(np.zeros(mags.shape[:-1], np.int32), mags, width)
+
+    def sign_magnitude(self, x, width: int) -> SM:
+        words = np.asarray(x)
+        return SM(words[..., width], words[..., :width], width)
 
     def zeros_tc(self, lead: tuple[int, ...], width: int) -> TC:
         return TC(np.zeros(tuple(lead) + (width,), np.int32), width)

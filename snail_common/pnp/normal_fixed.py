@@ -2,35 +2,56 @@
 
 Same quantities as normal.py, computed differently where precision allows (fixed.py):
 - camera points R X + t in fixed point, rounded once to float32 (``camera_points_fixed``):
-  truncated integer products (fixed.mul_cut) and exact sums cost 7.1 k AND per point
-  against 12.9 k for float32, with a cost as precise (against float64, 200 scenes at
-  their optimum: median relative error 8.9e-6 and largest 6.6e-5, float32 camera points
-  6.0e-6 and 5.1e-5; a relative change of 1e-4 stays resolved). The client's map is
+  truncated integer products (fixed.mul_cut) and exact sums cost 5.8 k AND per point
+  (7.1 k with a 26-bit map and products at its unit, GUARD 3) against 12.9 k for
+  float32. The map is taken at W_MAP = 24 bits: its truncation is the same at every pose
+  (a map moved by 2^-23 of its radius, far below any map's own error), so it shifts the
+  cost by a smooth amount: against float64 at OpenCV's optimum (200 scenes) the median
+  relative error is 1.4e-5 and the largest 2.0e-4 (8.5e-6 and 1.2e-4 with 26 bits), but
+  along a line of rotations through the optimum the cost's departure from a smooth
+  parabola (what decides an accept/reject) has a median of 7.3e-6 and a largest of
+  7.9e-5 of the cost (26 bits: 6.0e-6 and 6.5e-5; a 24-bit map with products at its
+  unit: 1.2e-5 and 9.9e-5, hence W_XC), and a relative rise of 1e-4 is always seen
+  (test_the_cost_resolves_a_relative_change_of_1e_4). 1,000 scenes per algorithm: seeds
+  1 and 3 and the in-circuit solve (seed 1) as with 26 bits; seed 2 lost GN scene 54
+  (n = 4, planar, at the 20-iteration cap with 26 bits too: 0.466 px against OpenCV's
+  0.421). The client's map is
   centered with unit RMS radius (preprocess.py), but a map owner's selection can reach
   far out, so the map enters as block floating point (one exponent for all its
   coordinates) and t at the same scale with T_BITS more integer bits: it saturates only
-  for a camera 2^11 map radii away, where no point spread could be resolved anyway;
+  for a camera 2^11 map radii away, where no point spread could be resolved anyway.
+  Where the client solves, it passes the map in that form (``map_fixed``: the integers
+  the circuit would compute, so the same sums bit for bit), which saves the conversion,
+  0.65 k AND per point (the in-circuit family and the map owner's ``-mo`` keep the
+  float32 map);
 - float32: the projections a = x/z, b = y/z, each one correctly rounded division (two
   divisions cost 0.3 k AND per point less than 1/z and two products, and round once),
   and the residuals r = a - u, whose float32 rounding of a, about 2^-24 |a| against
   residuals of 1e-3, sets the cost's precision (relative errors of ~1e-5; driver.py's
   cost_tol is 1e-4);
-- the cost in fixed point: (sqrt(w) r)^2 with r as block floating point at W_RC = 24
-  bits (all of the largest residual's float32 bits; ``er``), sqrt(w) the 16-bit
-  ``wfix``, sqrt(w) r kept to 24 bits (truncated: fixed.mul_cut_sm) and squared
-  truncated 2^D_COST below the per-point cost's unit of 2^-32 of the largest, then an
-  exact sum: 2.0 k AND per point against 4.1 k for float32 products and a block
-  fixed-point sum. With sigma = sqrt(w) r / u (u the residuals' unit, at most
-  2^(1 - W_RC) of the largest |r|), sqrt(w) r comes out less than 3 units below sigma,
-  which loses less than 6 sigma u^2 of w r^2, and its square less than 2 units of
-  2^D_COST: with equal weights the cost is within 6 sqrt(2n) 2^(1 - W_RC) +
-  n 2^(D_COST + 4 - 2 W_RC) below the exact sum of the float32 residuals' squares (1.7e-5
-  at n = 256; measured: at most 3e-7; tests/test_loc_fixed.py), below the residuals' own
-  float32 error. It is the cost of the weights' square roots rounded to 16 bits relative
-  to the largest (relative error of w below 2^-15 / sqrt(w / w_max), none where all
-  weights are equal, as without lens distortion and with fx = fy): the cost the result
-  reports and the accept/reject decisions, which compare two costs of the same weights;
-  the result's reprojection RMS is computed from the final pose in float64, not from it;
+- the cost in fixed point: (sqrt(w) r)^2 with r as block floating point at W_RC = 20
+  bits of the largest residual (``er``), sqrt(w) the 16-bit ``wfix``, sqrt(w) r kept to
+  20 bits (truncated: fixed.mul_cut_sm) and squared truncated 2^D_COST below the
+  per-point cost's unit of 2^-28 of the largest, then an exact sum: 1.5 k AND per point
+  against 4.1 k for float32 products and a block fixed-point sum (2.0 k with all 24 of
+  the largest residual's float32 bits and a unit of 2^-32). With sigma = sqrt(w) r / u
+  (u the residuals' unit, at most 2^(1 - W_RC) of the largest |r|), sqrt(w) r comes out
+  less than 3 units below sigma, which loses less than 6 sigma u^2 of w r^2, and its
+  square less than 2 units of 2^D_COST: with equal weights the cost is within 6 sqrt(2n)
+  2^(1 - W_RC) + n 2^(D_COST + 4 - 2 W_RC) below the exact sum of the float32 residuals'
+  squares (2.7e-4 at n = 256, where every error would have to align; measured: at most
+  1.0e-5, 3e-7 with 24 bits; tests/test_loc_fixed.py), the size of the residuals' own
+  float32 error: against the float64 cost at OpenCV's optimum (200 random scenes) the
+  median relative error went from 5.2e-6 to 8.5e-6, the 99th percentile from 6.3e-5 to
+  6.7e-5 and the largest stayed 1.2e-4, and a pose whose float64 cost is 1e-4 higher
+  costs more (400 of 400; test_the_cost_resolves_a_relative_change_of_1e_4). 1,000
+  scenes per algorithm, seeds 1 and 2, converged as with 24 bits; 19 and 18 bits made
+  the median error 3 and 5 times larger. It is the cost of the weights' square roots
+  rounded to 16 bits relative to the largest (relative error of w below 2^-15 / sqrt(w /
+  w_max), none where all weights are equal, as without lens distortion and with fx =
+  fy): the cost the result reports and the accept/reject decisions, which compare two
+  costs of the same weights; the result's reprojection RMS is computed from the final
+  pose in float64, not from it;
 - fixed point: the Jacobian, J^T W J and J^T W r, at about 13 significant bits, the
   precision normal.py's narrow floats already had. The Jacobian is sqrt(w) J: sqrt(w)
   multiplies c, a and b (6 products per point) and the rest is built from those (6
@@ -74,8 +95,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fixed import SCALE_BIAS, TC, fix_backend
-from .fops import F, concat
+from .fixed import SCALE_BIAS, SM, TC, fix_backend
+from .fops import F, MirrorBackend, concat
 from .normal import UPPER
 
 F_A = 13  # fraction bits of the projections a = x/z, b = y/z
@@ -86,19 +107,21 @@ W_R = 15  # residuals in J^T W r, relative to the largest one, in the in-circuit
 W_RS = 13  # when the client solves (2 x 1,000 scenes per algorithm as with 15 bits, as
 # many iterations; 11 bits took more and lost a GN scene; the in-circuit solve's LM and GN
 # took 2 and 3 % more iterations with 13 and one GN scene hit the cap)
-W_RC = 24  # residuals in the cost: every float32 bit of the largest
+W_RC = 20  # residuals in the cost, relative to the largest (module doc: the cost)
 F_W = 15  # square roots of the weights: the largest is 2^15 (module doc: the cost)
 W_W = 16
 W_WS = 10  # their top bits scale the sums (1,000 random scenes per algorithm converged as
 # with 15 bits)
-D_COST = 16  # bits dropped by w r times r: a per-point cost is within 2^-28 of the largest
+D_COST = 12  # bits dropped by w r times r: a per-point cost is within 2^-24 of the largest
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 HESS_BITS = 31  # to_float's integers are at most 2^31 in magnitude (float_system)
 H_SHIFT = 3  # J^T W J's Jacobian magnitudes are this much shorter when the client solves
 F_ROT = 24  # fraction bits of the rotation entries: all of float32's for |r| in [1/2, 1]
-W_MAP = 26  # map coordinates, relative to the largest one's binade: 2 bits below float32's
-GUARD = 3  # R_ij X_j and J^T W r keep the partial products from GUARD bits below the
-# result's unit (fixed.mul_cut); J^T W J from H_GUARD bits below (3 lost GN scenes)
+W_MAP = 24  # map coordinates, relative to the largest one's binade (module doc)
+W_XC = W_MAP + 1  # camera points' bits at that binade: R X's products keep one bit more
+X_GUARD = 2  # R_ij X_j keeps the partial products from X_GUARD bits below its unit
+GUARD = 3  # J^T W r keeps the partial products from GUARD bits below the result's unit
+# (fixed.mul_cut); J^T W J from H_GUARD bits below (3 lost GN scenes)
 H_GUARD = 5
 T_BITS = 12  # the translation's headroom over that binade (module doc: camera points)
 
@@ -129,38 +152,61 @@ def _gather(fx, terms: TC, n: int, sources: tuple[list, list]) -> TC:
     return fx.concat_tc(rows, 0)
 
 
+def map_block(world: F) -> tuple[SM, object]:
+    """The map as block floating point: W_MAP-bit magnitudes at the scale of its largest
+    exponent, and that exponent."""
+    fx = fix_backend(world)
+    ew = fx.block_emax(world)
+    return fx.from_float(world, ew, W_MAP), ew
+
+
+def map_fixed(world: np.ndarray) -> tuple[np.ndarray, np.uint8]:
+    """The ``wmap`` and ``emap`` inputs of the circuit the client solves: map_block of the
+    float32 map computed in the clear (the circuit would compute the same integers, for
+    ~0.65 k AND per point), the sign in bit W_MAP."""
+    pts, ew = map_block(F(MirrorBackend(), np.asarray(world, np.float32)))
+    return (pts.m | (pts.s << W_MAP)).astype(np.uint32), np.uint8(ew)
+
+
 def camera_points_fixed(R: F, t: F, world: F) -> F:
+    """camera_points_block of the float32 map (map_block)."""
+    return camera_points_block(R, t, *map_block(world))
+
+
+def camera_points_block(R: F, t: F, pts: SM, ew) -> F:
     """X_c = R X + t (n, 3) as float32, computed in fixed point: the map as block floating
     point (its largest exponent ew, W_MAP bits), R at the public scale 2^-F_ROT, t at the
     map's scale with T_BITS more integer bits (saturating beyond), exact integer sums,
     one rounding to float32 per coordinate.
 
     Error bound, M the map's largest |coordinate| and v = 2^-(W_MAP - 1) M: the unit of
-    the map's magnitudes is at most v, so each product R_ij X_j is off by less than v (X
-    truncated) + 2^-F_ROT M = 2v (R truncated) + 3v (the product's floor and its partial
-    products below 2^-GUARD of its unit: 2 x 15 terms / 2^(GUARD + 1) < 2 units), t by
-    less than v: before the final rounding a coordinate is within 19 v, after it within
-    19 v + 2^-24 |X_c| (tests/test_loc_fixed.py). float32 is within a few 2^-24 (M + |t|).
+    the map's magnitudes is at most v, that of the products and of t v / 2 (W_XC), so
+    each product R_ij X_j is off by less than v (X truncated: the same for every pose, a
+    map moved by less than v) + 2^-F_ROT M = v / 2 (R truncated) + 2.5 v (the product's
+    floor and its partial products below 2^-X_GUARD of its unit: 2 x 13 terms /
+    2^(X_GUARD + 1) < 4 units), t by less than v / 2: before the final rounding a
+    coordinate is within 12.5 v, after it within 12.5 v + 2^-24 |X_c|
+    (tests/test_loc_fixed.py). float32 is within a few 2^-24 (M + |t|).
     """
     fx = fix_backend(R)
-    ew = fx.block_emax(world)
     rot = fx.from_float(R, SCALE_BIAS + 1, F_ROT + 1)  # magnitudes of 1.0 are 2^F_ROT
-    pts = fx.from_float(world, ew, W_MAP)
-    trans = fx.twos(fx.from_float(t, fx.exponent_plus(ew, T_BITS), W_MAP + T_BITS))
-    prods = fx.mul_cut(rot[None], pts[:, None, :], F_ROT, F_ROT - GUARD, W_MAP + 1)  # (n, 3, 3)
+    trans = fx.twos(fx.from_float(t, fx.exponent_plus(ew, T_BITS), W_XC + T_BITS))
+    drop = F_ROT + W_MAP - W_XC
+    prods = fx.mul_cut(rot[None], pts[:, None, :], drop, drop - X_GUARD, W_XC + 1)  # (n, 3, 3)
     rx = fx.sum_tc(fx.stack_tc([fx.index_tc(prods, (slice(None), slice(None), j))
                                 for j in range(3)], 0))
-    return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_MAP)
+    return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_XC)
 
 
-def normal_equations_fixed(R: F, t: F, image: F, world: F, weights: F, wfix,
-                           h_shift: int = 0, r_bits: int = W_R):
-    """(hess (21,), grad (6,), cost (), ec, er), all integers: module doc. ``wfix`` is the
+def normal_equations_fixed(R: F, t: F, image: F, block: tuple[SM, object], weights: F,
+                           wfix, h_shift: int = 0, r_bits: int = W_R):
+    """(hess (21,), grad (6,), cost (), ec, er), all integers: module doc. ``block`` is the
+    map as map_block gives it (the client passes it as integers: ``map_fixed``); ``wfix`` is the
     (n, 2) integer square roots of the weights (mirror: int64; circuit: W_W-bit input
     words), which the cost uses too: ``weights`` is not read. J^T W J takes the
     Jacobian's magnitudes ``h_shift`` bits shorter and J^T W r the residuals at
     ``r_bits`` (H_SHIFT and W_RS where the client solves)."""
-    xc = camera_points_fixed(R, t, world)
+    xc = camera_points_block(R, t, *block)
     proj = xc[:, 0:2] / xc[:, 2:3]  # a = x/z, b = y/z correctly rounded
     err = proj - image
     fx = fix_backend(R)

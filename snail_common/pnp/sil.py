@@ -17,11 +17,20 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 
 from .block_ldlt import SOLVE_FRAC, block_ldlt_solve
-from .fixed import TC
+from .fixed import TC, fix_backend
 from .fops import F, stack
 from .ldlt import ldlt_solve
 from .normal import UPPER, normal_equations
-from .normal_fixed import H_SHIFT, W_R, W_RS, W_W, float_system, normal_equations_fixed
+from .normal_fixed import (
+    H_SHIFT,
+    W_MAP,
+    W_R,
+    W_RS,
+    W_W,
+    float_system,
+    map_block,
+    normal_equations_fixed,
+)
 from .svd import pinv_step, svd_solve, weighted_system
 
 ALGORITHMS = ("lm", "gn")
@@ -40,7 +49,12 @@ def input_shapes(algorithm: str, n: int, solver: str = "ldlt",
     shapes = {"R": (3, 3), "t": (3,)}
     if algorithm == "lm" and solver != CLIENT:
         shapes["lam"] = ()
-    shapes.update({"image": (n, 2), "world": (n, 3), "weights": (n, 2)})
+    shapes["image"] = (n, 2)
+    if solver == CLIENT and arith == "fixed":  # the map as block fixed point (map_fixed)
+        shapes.update({"wmap": (n, 3), "emap": ()})
+    else:
+        shapes["world"] = (n, 3)
+    shapes["weights"] = (n, 2)
     if arith == "fixed":
         shapes["wfix"] = (n, 2)
     return shapes
@@ -49,7 +63,7 @@ def input_shapes(algorithm: str, n: int, solver: str = "ldlt",
 # the inputs that change between a frame's invocations; the rest are the frame's
 ITERATION_INPUTS = ("R", "t", "lam")
 # (dtype, bits) of the inputs that are not float32, and the fixed-point circuit's outputs
-INPUT_TYPES = {"wfix": ("uint16", W_W)}
+INPUT_TYPES = {"wfix": ("uint16", W_W), "wmap": ("uint32", W_MAP + 1), "emap": ("uint8", 8)}
 FIXED_OUTPUT_TYPES = {"hess": "int64", "grad": "int64", "cost": "int64", "ec": "uint8",
                       "er": "uint8"}
 
@@ -120,6 +134,12 @@ def _damping_precision(hess: F, arith: str) -> AbstractContextManager:
 
 
 def _fixed_sums(inputs: dict[str, F], h_shift: int = 0, r_bits: int = W_R) -> tuple:
-    """normal_equations_fixed on the circuit's named inputs."""
-    return normal_equations_fixed(inputs["R"], inputs["t"], inputs["image"], inputs["world"],
+    """normal_equations_fixed on the circuit's named inputs: the map as the client's
+    integers where it solves, else converted from its float32 input."""
+    if "wmap" in inputs:
+        fx = fix_backend(inputs["R"])
+        block = fx.sign_magnitude(inputs["wmap"].v, W_MAP), inputs["emap"].v
+    else:
+        block = map_block(inputs["world"])
+    return normal_equations_fixed(inputs["R"], inputs["t"], inputs["image"], block,
                                   inputs["weights"], inputs["wfix"].v, h_shift, r_bits)
