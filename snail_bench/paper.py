@@ -195,11 +195,10 @@ def latency_sweep(repeat: int) -> dict:
     phases += [(f"client_{d:g}ms", {link: Shape(d) for link in client})
                for d in LATENCY_DELAYS_MS[1:]]
     try:
-        # cubic without slow start after idle: TCP sends a burst in one round trip, so
-        # the slope counts the protocol's round trips (README: what bbr adds)
+        # the kernel's own TCP, as users get it: the client's links run cubic from their
+        # first packet (net/conn.py), so a burst of labels takes one round trip
         spec = sil_spec("lm", 6)
-        tcp, rows = run_phases([spec], max(repeat, 5), phases,
-                               congestion="cubic", slow_start_after_idle=False)
+        tcp, rows = run_phases([spec], max(repeat, 5), phases)
     except LabUnavailable as exc:
         return {"lab": f"unavailable: {exc}"}
     out: dict = {"tcp": tcp, "delays_ms": list(LATENCY_DELAYS_MS)}
