@@ -47,8 +47,8 @@ RECORDER = """
 import sys, msgpack
 import snail_common.net.frames as frames
 _decode, _log = frames.decode, open(sys.argv.pop(1), "ab")
-def decode(body):
-    msg = _decode(body)
+def decode(body, lend=False):
+    msg = _decode(body, lend)
     kept = {k: v for k, v in msg.items() if not (msg["t"] == "tables" and k == "data")}
     _log.write(msgpack.packb(kept, use_bin_type=True))
     _log.flush()
@@ -190,8 +190,8 @@ def test_no_frame_carries_what_its_receiver_must_not_see(servers, tmp_path, monk
     client_got: list[dict] = []
     decode = frames.decode
 
-    def recording(body):
-        msg = decode(body)
+    def recording(body, lend=False):
+        msg = decode(body, lend)
         client_got.append(msg)
         return msg
 
