@@ -17,6 +17,8 @@ operand acts as an infinity (so NaN/y = inf, x/NaN = 0, NaN/NaN = NaN).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from snail_common.circuit import ONE, CircuitBuilder
@@ -25,6 +27,23 @@ from .fbits import fields, nonzero_exp, round_pack
 from .integer import add
 from .prefix import add_fast
 from .words import Word, and_all, broadcast_lead, cat, const, zext
+
+
+def nonrestoring_quotient(b: CircuitBuilder, dividend: Word, divisor: Word, steps: int,
+                          adder: Callable = add) -> Word:
+    """The ``steps`` + 1 quotient bits of dividend / divisor (w-bit words, positive,
+    dividend < 2 divisor), LSB first: each bit one add-or-subtract of the divisor chosen
+    by the previous remainder's sign (module doc)."""
+    w = divisor.shape[-1]
+    lead = np.broadcast_shapes(np.shape(dividend)[:-1], divisor.shape[:-1])
+    r = adder(b, dividend, b.not_(divisor), ONE)
+    qs = [b.not_(r[..., -1])]
+    for _ in range(steps):
+        sub_ = qs[-1]                                  # remainder >= 0: subtract
+        r2 = cat(np.zeros(lead + (1,), np.int32), r[..., : w - 1])
+        r = adder(b, r2, b.xor(divisor, sub_[..., None]), sub_)
+        qs.append(b.not_(r[..., -1]))
+    return np.stack(qs[::-1], axis=-1)
 
 
 def fdiv(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> Word:
@@ -39,14 +58,7 @@ def fdiv(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> Word:
     w = 25
     dvd = zext(cat(fx, one), w)
     dvs = zext(cat(fy, one), w)
-    r = adder(b, dvd, b.not_(dvs), ONE)                # ma - mb, |.| < 2^24
-    qs = [b.not_(r[..., -1])]
-    for _ in range(25):
-        sub_ = qs[-1]                                  # remainder >= 0: subtract
-        r2 = cat(np.zeros(lead + (1,), np.int32), r[..., : w - 1])
-        r = adder(b, r2, b.xor(dvs, sub_[..., None]), sub_)
-        qs.append(b.not_(r[..., -1]))
-    q = np.stack(qs[::-1], axis=-1)                    # q[25] = integer bit, LSB first
+    q = nonrestoring_quotient(b, dvd, dvs, 25, adder)  # q[25] = integer bit, LSB first
     q0 = q[..., 25]
     sig = b.mux(q0[..., None], q[..., 1:25], q[..., 2:26])
     guard = b.mux(q0, q[..., 0], q[..., 1])
@@ -60,4 +72,4 @@ def fdiv(b: CircuitBuilder, x: Word, y: Word, depth_opt: bool = False) -> Word:
     return round_pack(b, b.xor(sx, sy), e1, sig, guard, None, zero=zero, inf=inf, nan=nan)
 
 
-__all__ = ["fdiv"]
+__all__ = ["fdiv", "nonrestoring_quotient"]

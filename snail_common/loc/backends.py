@@ -24,7 +24,7 @@ from snail_common.pnp import family
 from snail_common.pnp.do import do_reference, normal_equations64, pinv_solve64
 from snail_common.pnp.normal import UPPER
 from snail_common.pnp.normal_fixed import decode, map_fixed, weight_unit, weights_fixed
-from snail_common.pnp.sil import CLIENT, ITERATION_INPUTS
+from snail_common.pnp.sil import CLIENT, ITERATION_INPUTS, takes_map_as_integers
 from snail_common.pnp.spec import Spec, integer_outputs, run_mirror
 
 from .types import Normalized, Pose
@@ -61,7 +61,7 @@ def sil_values(spec: Spec, problem: Normalized, pose: Pose, lam: float) -> Value
     values = {k: np.asarray(v, np.float64) for k, v in values.items()}
     if spec.arith == "fixed":
         values["wfix"] = weights_fixed(values["weights"])
-    if spec.arith == "fixed" and spec.solver == CLIENT:  # "world" stays for Float64Backend
+    if takes_map_as_integers(spec.solver, spec.arith):  # "world" stays for Float64Backend
         values["wmap"], values["emap"] = map_fixed(values["world"])
     return values
 

@@ -30,6 +30,7 @@ import numpy as np
 from snail_common.arith import fconvert, integer, multiply, shift
 from snail_common.arith import mirror as m
 from snail_common.arith.fbits import round_pack
+from snail_common.arith.fdiv import nonrestoring_quotient
 from snail_common.arith.prefix import add_fast
 from snail_common.arith.words import broadcast_lead, cat, const, or_all, sext, zext
 from snail_common.circuit import ONE, ZERO
@@ -264,14 +265,7 @@ class FixCircuit:
         adder = add_fast if self.be.depth_opt else integer.add
         w = 25
         dvs = zext(cat(v[..., :23], np.full(v.shape[:-1] + (1,), ONE, np.int32)), w)
-        r = adder(b, const(1 << 23, w), b.not_(dvs), ONE)    # 2^23 - S: the 2^width bit
-        qs = [b.not_(r[..., -1])]
-        for _ in range(width):
-            sub_ = qs[-1]
-            r2 = cat(np.zeros(v.shape[:-1] + (1,), np.int32), r[..., :w - 1])
-            r = adder(b, r2, b.xor(dvs, sub_[..., None]), sub_)
-            qs.append(b.not_(r[..., -1]))
-        q = np.stack(qs[::-1], axis=-1)                    # LSB first, width + 1 bits
+        q = nonrestoring_quotient(b, const(1 << 23, w), dvs, width, adder)  # width + 1 bits
         d = integer.sub(b, e, np.broadcast_to(emin, e.shape))
         stages = width.bit_length()
         gone = or_all(b, d[..., stages:])                  # d > width: all shifted out

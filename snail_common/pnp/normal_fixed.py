@@ -268,7 +268,7 @@ def scales(ec: int, er: int) -> tuple[np.ndarray, float]:
 def weights_fixed(weights: np.ndarray) -> np.ndarray:
     """The ``wfix`` input: the weights normalized to a largest of 2^F_W, rounded."""
     w = np.asarray(weights, np.float64)
-    top = float(w.max()) if w.size else 0.0
+    top = weight_unit(w)
     if not top > 0.0:
         return np.zeros(w.shape, np.uint16)
     return np.rint(np.sqrt(w / top) * (1 << F_W)).astype(np.uint16)

@@ -40,6 +40,13 @@ ARITHS = ("float", "fixed")  # a SIL circuit's per-point arithmetic (normal_fixe
 _DIAG = [UPPER.index((i, i)) for i in range(6)]
 
 
+def takes_map_as_integers(solver: str, arith: str) -> bool:
+    """Whether a SIL circuit's map input is the client's block fixed point (``wmap``,
+    ``emap``: map_fixed) rather than float32 ``world``: only where the client solves (in
+    the map-owner setting the map is not the client's to convert)."""
+    return solver == CLIENT and arith == "fixed"
+
+
 def input_shapes(algorithm: str, n: int, solver: str = "ldlt",
                  arith: str = "float") -> dict[str, tuple[int, ...]]:
     """Secret inputs of a SIL circuit, float32 unless INPUT_TYPES says otherwise: pose,
@@ -50,7 +57,7 @@ def input_shapes(algorithm: str, n: int, solver: str = "ldlt",
     if algorithm == "lm" and solver != CLIENT:
         shapes["lam"] = ()
     shapes["image"] = (n, 2)
-    if solver == CLIENT and arith == "fixed":  # the map as block fixed point (map_fixed)
+    if takes_map_as_integers(solver, arith):
         shapes.update({"wmap": (n, 3), "emap": ()})
     else:
         shapes["world"] = (n, 3)
