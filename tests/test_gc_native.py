@@ -199,10 +199,9 @@ def _compile_planted(tmp: Path, marker: Path) -> bytes:
 
 
 def test_a_planted_library_is_never_loaded(tmp_path):
-    root = tmp_path / "cache"
+    root = folder = tmp_path / "kernel"
     _, how = build.build_and_load(root)
     assert how.startswith("compiled")
-    folder = root / build.FOLDER
     assert folder.stat().st_mode & 0o777 == 0o700
     _, how = build.build_and_load(root)
     assert how.startswith("loaded")  # the record matched: no rebuild
@@ -221,17 +220,17 @@ def test_a_planted_library_is_never_loaded(tmp_path):
 
 
 def test_a_folder_others_may_enter_is_refused(tmp_path):
-    folder = tmp_path / build.FOLDER
+    folder = tmp_path / "kernel"
     folder.mkdir(mode=0o755)
     folder.chmod(0o755)
     with pytest.raises(build.NativeUnavailable, match="mode 0700"):
-        build.build_and_load(tmp_path)
+        build.build_and_load(folder)
 
 
 @pytest.fixture
 def no_compiler(monkeypatch, tmp_path):
     monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
-    monkeypatch.setenv("SNAIL_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv(build.KERNEL_DIR_ENV, str(tmp_path / "kernel"))
     build.reset()
     yield
     build.reset()
@@ -269,5 +268,5 @@ def test_a_compiler_that_fails_is_a_reason_not_a_crash(monkeypatch, tmp_path):
     fake.chmod(0o755)
     monkeypatch.setenv("CC", str(fake))
     with pytest.raises(build.NativeUnavailable, match="cannot compile"):
-        build.build_and_load(tmp_path / "cache")
+        build.build_and_load(tmp_path / "kernel")
     assert shutil.which(str(fake))

@@ -69,6 +69,10 @@ class Listener:
     def prometheus(self) -> str:
         raise NotImplementedError
 
+    def startup_fields(self) -> dict[str, Any]:
+        """What the ``listening`` line adds for this daemon."""
+        return {}
+
     async def serve(self, conn: Connection) -> None:
         raise NotImplementedError
 
@@ -150,7 +154,8 @@ class Listener:
         announce(self.log, "listening", host=host, port=server.sockets[0].getsockname()[1],
                  pid=os.getpid(), max_sessions=self.options.max_sessions,
                  max_and_gates=self.options.max_and_gates,
-                 workers=self.options.workers, revoked=len(self.revoked))
+                 workers=self.options.workers, revoked=len(self.revoked),
+                 **self.startup_fields())
         scrapes = await self._serve_metrics()
         await self.stopping.wait()
         if scrapes is not None:

@@ -64,6 +64,7 @@ class Daemon(Listener):
         self._planned: dict[str, int] = {}  # circuit id -> id() of the planned schedule
         self._peer_sessions: Counter[str] = Counter()
         self.heap = HeapTrimmer()
+        self.engine: dict[str, str] = {}  # which garbling engine serves (use_engine)
 
     async def run(self, host: str, port: int, ctx: ssl.SSLContext) -> None:
         """Serve until stopped (``Listener.run``), then let the workers go."""
@@ -79,9 +80,20 @@ class Daemon(Listener):
                              max_sessions=self.options.max_sessions,
                              max_and_gates=self.options.max_and_gates)
 
+    def use_engine(self, status: dict[str, str]) -> None:
+        """Record which garbling engine serves (gc/engine.py's ``engine_status``), for
+        the start-up line and ``health``."""
+        self.engine = {"engine": status["engine"]}
+        if "reason" in status:
+            self.engine["engine_reason"] = status["reason"]
+
+    def startup_fields(self) -> dict[str, Any]:
+        return self.engine
+
     def health(self) -> dict[str, Any]:
         return messages.make("health", role=self.role, sessions=self.metrics.health(),
-                             uptime_s=round(time.monotonic() - self.started, 3))
+                             uptime_s=round(time.monotonic() - self.started, 3),
+                             **self.engine)
 
     def prometheus(self) -> str:
         return self.metrics.prometheus()

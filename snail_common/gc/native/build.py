@@ -2,8 +2,9 @@
 verify.
 
 The library is built with the system C compiler (``$CC``, else ``cc``) into a folder of
-the circuit cache that only this user may enter (0700, owned by us: checked before every
-use), keyed by the source's hash and the compiler's identity. Beside it a record names
+the circuit cache (or ``$SNAIL_KERNEL_DIR``: an image can build it once, tests share one)
+that only this user may enter (0700, owned by us: checked before every use), keyed by the
+source's hash and the compiler's identity. Beside it a record names
 the source hash, the compiler and the library's own SHA-256. A library is loaded only when
 the record matches this source and compiler and the library's bytes match the record; the
 bytes hashed are the bytes loaded (copied into an anonymous memory file first), so a
@@ -32,7 +33,8 @@ from snail_common.circuit.cache import cache_dir
 SOURCE = Path(__file__).with_name("kernel.c")
 CC_ENV = "CC"
 FLAGS = ("-O3", "-shared", "-fPIC", "-fno-strict-aliasing", "-fvisibility=default")
-FOLDER = "native-kernel"
+FOLDER = "native-kernel"  # under the circuit cache
+KERNEL_DIR_ENV = "SNAIL_KERNEL_DIR"  # or here
 COMPILE_TIMEOUT_S = 120
 
 
@@ -58,9 +60,8 @@ def compiler_identity(cc: str) -> str:
     return f"{os.path.realpath(path)} {first}"
 
 
-def _private_folder(root: Path) -> Path:
-    """``root/FOLDER``, created 0700; NativeUnavailable unless it is ours and private."""
-    folder = root / FOLDER
+def _private_folder(folder: Path) -> Path:
+    """``folder``, created 0700; NativeUnavailable unless it is ours and private."""
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     st = folder.lstat()
     if not folder.is_dir() or folder.is_symlink():
@@ -149,8 +150,14 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     return lib
 
 
-def build_and_load(root: Path | None = None) -> tuple[ctypes.CDLL, str]:
-    """The kernel library (compiled if needed) and a line saying what was loaded."""
+def kernel_dir() -> Path:
+    """Where the library is built: $SNAIL_KERNEL_DIR, else the circuit cache's FOLDER."""
+    return Path(os.environ.get(KERNEL_DIR_ENV) or cache_dir() / FOLDER)
+
+
+def build_and_load(folder: Path | None = None) -> tuple[ctypes.CDLL, str]:
+    """The kernel library (compiled into ``folder``, default ``kernel_dir()``, if needed)
+    and a line saying what was loaded."""
     if platform.system() != "Linux" or platform.machine() not in ("x86_64", "AMD64"):
         raise NativeUnavailable(f"the native kernel needs Linux on x86-64, this is "
                                 f"{platform.system()} {platform.machine()}")
@@ -159,7 +166,7 @@ def build_and_load(root: Path | None = None) -> tuple[ctypes.CDLL, str]:
     source = SOURCE.read_bytes()
     source_hash = _sha256(source)
     key = _sha256(f"{source_hash}\n{compiler}\n{' '.join(FLAGS)}".encode())[:24]
-    folder = _private_folder(root or cache_dir())
+    folder = _private_folder(folder or kernel_dir())
     data = _verified_bytes(folder, key, source_hash, compiler)
     built = data is None
     if built:
