@@ -184,7 +184,7 @@ def engine(schemes: tuple[str, ...], engine_names: tuple[str, ...], as_json: boo
     from .engine import SCHEMES, engine_report
 
     try:
-        report = engine_report(schemes=tuple(dict.fromkeys(schemes)) or SCHEMES,
+        report = engine_report(schemes=tuple(dict.fromkeys(schemes)) or tuple(SCHEMES),
                                engine_names=engine_names or None)
     except NativeUnavailable as exc:
         raise click.BadParameter(f"native: {exc}", param_hint="--engine") from None
