@@ -26,6 +26,8 @@ from snail_common.circuit import registry
 from snail_common.circuit.ir import Circuit
 from snail_common.circuit.plan import plan_for
 from snail_common.circuit.schedule import Schedule
+from snail_common.gc.native.run import program_for
+from snail_common.gc.stream import BLOCK_GATES
 
 from . import messages
 from .conn import SOFTWARE, Connection
@@ -120,7 +122,8 @@ class Daemon(Listener):
                                         self.options.max_and_gates)
                 _same_hash(circuit_id, iface.content_hash, content_hash)
                 circuit, schedule = await self.work(_prepare, circuit_id,
-                                                    self.options.max_and_gates)
+                                                    self.options.max_and_gates,
+                                                    self.engine.get("engine") == "native")
                 self._planned[circuit_id] = id(schedule)
         except registry.UnknownCircuit as exc:
             raise ProtocolError(UNKNOWN_CIRCUIT, str(exc)) from None
@@ -235,9 +238,13 @@ def _same_hash(circuit_id: str, ours: str, theirs: str) -> None:
                                               f"{theirs[:16]}...")
 
 
-def _prepare(circuit_id: str, max_and: int) -> tuple[Circuit, Schedule]:
-    """Compile (or load) the circuit and build its engine plan once."""
+def _prepare(circuit_id: str, max_and: int, native: bool) -> tuple[Circuit, Schedule]:
+    """Compile (or load) the circuit and build its engine plan once (and the native
+    kernel's program of it for the usual block size: checking its indices takes a few
+    tenths of a second at n = 256, which the first session need not wait for)."""
     circuit, schedule = registry.compiled(circuit_id, max_and)
     plan_for(schedule)
+    if native:
+        program_for(schedule, BLOCK_GATES)
     return circuit, schedule
 

@@ -10,6 +10,7 @@ or writes outside them, whatever arrives from the wire.
 from __future__ import annotations
 
 import ctypes
+import threading
 
 import numpy as np
 
@@ -24,16 +25,24 @@ from .program import Program, build_program, ops_within
 U64 = np.uint64
 GARBLE, EVALUATE = 0, 1
 MAX_LANES = 256  # kernel.c's MAX_LANES
+BLOCK_SIZES_KEPT = 4  # programs kept per schedule (the block size comes from a stream header)
 _programs = per_object(lambda schedule: {})
+_lock = threading.Lock()
 
 
 def program_for(schedule: Schedule, block: int) -> Program:
     """The kernel program of ``schedule``'s plan with blocks of ``block`` gates, built and
-    checked once while the schedule lives."""
+    checked once while the schedule lives (the last BLOCK_SIZES_KEPT block sizes)."""
     per_block = _programs(schedule)
-    if block not in per_block:
-        per_block[block] = build_program(plan_for(schedule), schedule.n_slots, block)
-    return per_block[block]
+    with _lock:
+        program = per_block.get(block)
+    if program is None:
+        program = build_program(plan_for(schedule), schedule.n_slots, block)
+        with _lock:
+            per_block[block] = program
+            while len(per_block) > BLOCK_SIZES_KEPT:
+                del per_block[next(iter(per_block))]
+    return program
 
 
 def _pointer(arr: np.ndarray | None) -> int | None:
