@@ -396,21 +396,36 @@ TGT static void and_op(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, uint64
 
 /* ---------------------------------------------------------------- linear ops */
 
-/* out[i] = XOR over columns, chunk by chunk, column by column */
+#define REG_COLUMNS 8 /* up to this many columns, a row's XOR stays in registers */
+
+/* out[i] = XOR over columns, chunk by chunk: a row's XOR in registers when the columns
+ * are few, else column by column through the output row */
 TGT INLINE void xor_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t k,
                          int64_t width) {
-    uint64_t *o[CHUNK], *p[CHUNK];
+    uint64_t *o[CHUNK], *p[REG_COLUMNS][CHUNK];
     for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
         int64_t m = n - i0 < CHUNK ? n - i0 : CHUNK;
         out_ptrs(c, &r[0], dst, i0, m, o);
-        row_ptrs(&r[1], i0, m, c->values, width, p);
+        if (k <= REG_COLUMNS) {
+            for (int64_t col = 0; col < k; col++)
+                row_ptrs(&r[1 + col], i0, m, c->values, width, p[col]);
+            for (int64_t q = 0; q < m; q++)
+                for (int64_t w = 0; w < width; w += 2) {
+                    __m128i acc = LD(p[0][q] + w);
+                    for (int64_t col = 1; col < k; col++)
+                        acc = _mm_xor_si128(acc, LD(p[col][q] + w));
+                    ST(o[q] + w, acc);
+                }
+            continue;
+        }
+        row_ptrs(&r[1], i0, m, c->values, width, p[0]);
         for (int64_t q = 0; q < m; q++) /* the first column, then XOR the others in */
-            for (int64_t w = 0; w < width; w += 2) ST(o[q] + w, LD(p[q] + w));
+            for (int64_t w = 0; w < width; w += 2) ST(o[q] + w, LD(p[0][q] + w));
         for (int64_t col = 1; col < k; col++) {
-            row_ptrs(&r[1 + col], i0, m, c->values, width, p);
+            row_ptrs(&r[1 + col], i0, m, c->values, width, p[0]);
             for (int64_t q = 0; q < m; q++)
                 for (int64_t w = 0; w < width; w += 2)
-                    ST(o[q] + w, _mm_xor_si128(LD(o[q] + w), LD(p[q] + w)));
+                    ST(o[q] + w, _mm_xor_si128(LD(o[q] + w), LD(p[0][q] + w)));
         }
     }
 }
