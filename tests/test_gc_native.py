@@ -219,6 +219,20 @@ def test_a_planted_library_is_never_loaded(tmp_path):
     assert how.startswith("compiled")
 
 
+def test_without_a_compiler_a_library_built_for_this_source_serves(tmp_path, monkeypatch):
+    """An image's build step compiles the kernel; where it runs there is no compiler."""
+    folder = tmp_path / "kernel"
+    build.build_and_load(folder)
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    lib, how = build.build_and_load(folder)
+    assert how.startswith("prebuilt") and lib.snail_cpu_ok() == 1
+    record = next(folder.glob("*.json"))
+    library = folder / json.loads(record.read_text())["library"]
+    library.write_bytes(library.read_bytes() + b"planted")  # not what the record says
+    with pytest.raises(build.NativeUnavailable, match="no C compiler"):
+        build.build_and_load(folder)
+
+
 def test_a_folder_others_may_enter_is_refused(tmp_path):
     folder = tmp_path / "kernel"
     folder.mkdir(mode=0o755)

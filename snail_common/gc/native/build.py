@@ -10,9 +10,11 @@ the record matches this source and compiler and the library's bytes match the re
 bytes hashed are the bytes loaded (copied into an anonymous memory file first), so a
 library planted or swapped in the cache is never loaded: it is rebuilt instead.
 
-No Python headers and no package: ctypes and the compiler. Where there is no compiler, or
-the CPU lacks the AES instructions, ``load`` raises ``NativeUnavailable`` with the reason,
-and the caller runs the numpy engine and says so.
+Where there is no compiler, a library some compiler built from this very source into the
+folder (an image's build step) is used, under the same checks. No Python headers and no
+package: ctypes and the compiler. Where neither serves, or the CPU lacks the AES
+instructions, ``build_and_load`` raises ``NativeUnavailable`` with the reason, and the
+caller runs the numpy engine and says so.
 """
 
 from __future__ import annotations
@@ -100,6 +102,19 @@ def _verified_bytes(folder: Path, key: str, source_hash: str, compiler: str) -> 
     return data if _sha256(data) == record.get("library_sha256") else None
 
 
+def _built_elsewhere(folder: Path, source_hash: str) -> tuple[bytes, str] | None:
+    """A verified library of this source by any compiler, and that compiler."""
+    for record in sorted(folder.glob("*.json")):
+        try:
+            compiler = str(json.loads(record.read_text())["compiler"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        data = _verified_bytes(folder, record.stem, source_hash, compiler)
+        if data is not None:
+            return data, compiler
+    return None
+
+
 def _compile(folder: Path, key: str, source: bytes, source_hash: str, compiler: str,
              cc: str) -> bytes:
     """Compile into a fresh file, then publish its record atomically; the library's bytes."""
@@ -162,20 +177,33 @@ def build_and_load(folder: Path | None = None) -> tuple[ctypes.CDLL, str]:
         raise NativeUnavailable(f"the native kernel needs Linux on x86-64, this is "
                                 f"{platform.system()} {platform.machine()}")
     cc = os.environ.get(CC_ENV) or "cc"
-    compiler = compiler_identity(cc)
     source = SOURCE.read_bytes()
     source_hash = _sha256(source)
+    try:
+        compiler = compiler_identity(cc)
+    except NativeUnavailable:
+        prebuilt = (_built_elsewhere(_private_folder(folder or kernel_dir()), source_hash)
+                    if (folder or kernel_dir()).is_dir() else None)
+        if prebuilt is None:
+            raise
+        data, compiler = prebuilt
+        return _checked(_bind(_load_bytes(data, "snail-kernel"))), f"prebuilt ({compiler})"
     key = _sha256(f"{source_hash}\n{compiler}\n{' '.join(FLAGS)}".encode())[:24]
     folder = _private_folder(folder or kernel_dir())
     data = _verified_bytes(folder, key, source_hash, compiler)
     built = data is None
     if built:
         data = _compile(folder, key, source, source_hash, compiler, cc)
-    lib = _bind(_load_bytes(data, f"snail-kernel-{key}"))
-    if not lib.snail_cpu_ok():
-        raise NativeUnavailable("the CPU lacks the AES-NI, SSSE3 or SSE4.1 instructions")
+    lib = _checked(_bind(_load_bytes(data, f"snail-kernel-{key}")))
     how = "compiled" if built else "loaded"
     return lib, f"{how} {key} ({compiler.split(' ', 1)[1]})"
+
+
+def _checked(lib: ctypes.CDLL) -> ctypes.CDLL:
+    """``lib``, once it says the CPU has the instructions it uses."""
+    if not lib.snail_cpu_ok():
+        raise NativeUnavailable("the CPU lacks the AES-NI, SSSE3 or SSE4.1 instructions")
+    return lib
 
 
 _lock = threading.Lock()
