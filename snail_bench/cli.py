@@ -254,7 +254,7 @@ def _print_service(measure: Callable[[], dict], as_json: bool,
                    show: Callable[[dict], None]) -> None:
     """The end of ``service``, with or without --map-points: ``measure``'s report as one
     JSON object or as ``show`` prints it; exit 1 if the service fails."""
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     try:
         report = measure()
@@ -360,7 +360,7 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
                        "pip install 'snail[bench]'", err=True)
             sys.exit(2)
     flags = click.get_current_context().find_object(dict) or {}
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     try:
         report = run_soak(plan, flags.get("quiet", False), out)
@@ -628,7 +628,7 @@ def paper(out: str, quick: bool, paper_results: str | None) -> None:
     click.echo(f"snail-bench: the {'quick' if quick else 'full'} plan takes about "
                f"{plan.expected_minutes():g} minutes on 2 idle cores with a cold circuit "
                f"cache (twice that with other work on them).", err=True)
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     from .netlab.namespaces import LabError
 

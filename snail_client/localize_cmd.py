@@ -22,10 +22,10 @@ from snail_common.net.tls import TLSFileError
 
 from . import owner_localize
 from .inputs.options import load_frame, load_frames, localize_inputs, track_inputs
-from .links import DEFAULT_LINK_TIMEOUT
+from .links import DEFAULT_LINK_TIMEOUT, ServiceError
 from .localize import BACKENDS, Options, backend_for, localize
 from .progress import bar
-from .secure import DEFAULT_BUSY_WAIT, ServiceError
+from .secure import DEFAULT_BUSY_WAIT
 
 
 def _options(fn: Callable) -> Callable:

@@ -25,8 +25,9 @@ import pytest
 from fault_proxy import FaultProxy
 from test_service_e2e import cleartext, wait_for
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import Daemon, embedded_services, make_certs, start_daemon
-from snail_client.secure import SecureRunner, ServiceError
+from snail_client.links import ServiceError
 from snail_common.circuit import registry
 from snail_common.net.conn import parse_addr
 
