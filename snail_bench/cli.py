@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from snail_client.verbosity import VerbosityGroup
 from snail_common import families
 from snail_common.circuit import evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import BristolError, load_bristol
@@ -38,7 +39,7 @@ def _emit(report: dict, as_json: bool) -> None:
 SERVICE_POINTS = (6, 12)  # what `service` measures unless --points says otherwise
 ACCURACY_TARGETS = {"lm": 0.999, "gn": 0.99}  # pass rates `accuracy` holds the loop to
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="snail", prog_name="snail-bench")
 @click.option("-v", "--verbose", is_flag=True, help="Report each measurement on stderr "
                                                     "as it finishes.")

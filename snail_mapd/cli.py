@@ -1,4 +1,4 @@
-"""snail-mapd: the map owner's daemon (the map-owner setting, README)."""
+"""snail-mapd: the map owner's daemon (the map-owner setting, docs/map-owner.md)."""
 
 from __future__ import annotations
 
