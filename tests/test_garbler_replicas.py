@@ -18,8 +18,9 @@ from snail_client.blocking import SecureRunner
 from snail_client.embedded import start_daemon
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.gc import fresh_delta, labels_to_bytes
-from snail_common.net import errors, messages, tls
+from snail_common.net import errors, messages, replicas, tls
 from snail_common.net.conn import connect, parse_addr
+from snail_common.net.errors import ProtocolError
 from snail_common.net.tls import make_certs
 
 CIRCUIT = "ops/fmul-x4"
@@ -120,3 +121,31 @@ def test_each_session_streams_to_the_replica_its_client_talks_to(tmp_path, tls_d
             after = [_sessions(e.log) for e in evaluators]
             assert [a - b for a, b in zip(after, before)] == [
                 int(e is evaluator) for e in evaluators]
+
+
+def test_a_replica_that_left_dns_stays_dialable_while_it_drains(monkeypatch):
+    """A swarm drops a stopping task from tasks.NAME at once, while it drains: the
+    garbler must still reach it for the sessions it admitted (once rejected as
+    forbidden, failing a localization under a rolling update). An address the names
+    never resolved to stays forbidden, and one gone for longer than RECENT_S too."""
+    answers = [[("10.0.0.1", 7000), ("10.0.0.2", 7000)], [("10.0.0.2", 7000)]]
+
+    async def fake(host, port):
+        return list(answers[0])
+
+    monkeypatch.setattr(replicas, "resolve", fake)
+    names = replicas.Replicas([("tasks.evaluator", 7000)], "--evaluator", "evaluator", ttl=0)
+
+    async def check() -> None:
+        assert await names.allowed(("10.0.0.1", 7000)) == ("10.0.0.1", 7000)
+        answers.pop(0)  # 10.0.0.1 is draining: out of DNS
+        assert await names.addresses(fresh=True) == [("10.0.0.2", 7000)]
+        assert await names.allowed(("10.0.0.1", 7000)) == ("10.0.0.1", 7000)
+        assert await names.allowed(("10.0.0.3", 7000)) is None
+        with pytest.raises(ProtocolError) as refused:
+            await names.check("10.0.0.3:7000", "evaluator")
+        assert refused.value.code == errors.FORBIDDEN
+        names._seen[("10.0.0.1", 7000)] -= replicas.RECENT_S  # long gone
+        assert await names.allowed(("10.0.0.1", 7000)) is None
+
+    asyncio.run(check())

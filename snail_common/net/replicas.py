@@ -6,7 +6,8 @@ client could make it open connections where it likes (a server-side request forg
 configured name may stand for several replicas, as an orchestrator's DNS gives them
 (``tasks.evaluator`` in a Docker swarm, a headless Service in Kubernetes), so a name is
 resolved to all its addresses, again when asked for one it does not hold (replicas come
-and go), and at most every ``ttl`` seconds otherwise.
+and go), and at most every ``ttl`` seconds otherwise. An address stays allowed for
+RECENT_S after it left the answer: a draining replica leaves DNS before its sessions end.
 
 A session must reach the one evaluator replica its client talks to. The client names it
 twice: by the address it reached it at, and by the ``instance`` the replica announced in
@@ -33,6 +34,10 @@ from .errors import BAD_REQUEST, FORBIDDEN, PEER_LOST, ConnectionClosed, Protoco
 
 Address = tuple[str, int]
 RESOLVE_TTL = 2.0  # seconds a resolution is reused when nothing new is asked for
+# an address the names resolved to stays dialable this long after it left the answer: a
+# replica that is draining has left DNS (a swarm drops a stopping task at once) while the
+# sessions it admitted still need their table streams
+RECENT_S = 600.0
 
 
 def address_key(addr: Address) -> Address:
@@ -78,6 +83,7 @@ class Replicas:
         self.flag, self.role, self.ttl = flag, role, ttl
         self.instances: dict[Address, str] = {}
         self._origin: dict[Address, str] = {}  # resolved address -> the name it came from
+        self._seen: dict[Address, float] = {}  # resolved address -> when last resolved
         self._addresses: list[Address] = []
         self._resolved = -float("inf")
         self._lock = asyncio.Lock()
@@ -102,9 +108,12 @@ class Replicas:
                         for addr in await resolve(host, port):
                             self._origin.setdefault(addr, host)
                             found += [addr] if addr not in found else []
+                            self._seen[addr] = time.monotonic()
                     except OSError:
                         continue
                 self._addresses, self._resolved = found, time.monotonic()
+                self._seen = {a: t for a, t in self._seen.items()
+                              if self._resolved - t < RECENT_S}
             return list(self._addresses)
 
     def server_name(self, addr: Address) -> str:
@@ -114,7 +123,8 @@ class Replicas:
 
     async def allowed(self, addr: Address) -> Address | None:
         """The configured name or resolved address ``addr`` is, if it is one (resolved
-        afresh once before saying no); a client's host name is compared, not resolved."""
+        afresh once, and those resolved within RECENT_S, before saying no); a client's
+        host name is compared, not resolved."""
         key = address_key(addr)
         if key in self.names:
             return key
@@ -123,7 +133,9 @@ class Replicas:
         for fresh in (False, True):
             if key in await self.addresses(fresh):
                 return key
-        return None
+        # a replica the names resolved to lately (draining: gone from DNS, not yet away)
+        seen = self._seen.get(key)
+        return key if seen is not None and time.monotonic() - seen < RECENT_S else None
 
     async def check(self, named: str, field: str) -> Address:
         """The address a client named in ``field``, if the operator allowed it;
