@@ -3,8 +3,12 @@
 The three roles run as three hosts in the network lab (``snail_bench.netlab``); before
 each measurement every link's RTT and rate are measured (so a reader sees the shaping
 took effect), then ``snail-bench service`` runs unchanged in the client's namespace
-against the daemons in theirs. By default the same lab first runs unshaped, with the same
-daemons and circuits, so the two figures differ only by the shaping.
+against the daemons in theirs. By default the same lab, daemons and circuits first run
+unshaped over the direct path (kernel bridges, nothing in user space) and then as the
+control run: every link through the shaper with zero delay and no rate. The control run
+against the unshaped one is what the lab itself costs; the shaped run against the control
+run is what the shaping costs. Headline figures are wall times; the forwarder's CPU
+seconds (``wire_cpu_s``) say how much of the machine the lab took.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Callable, Mapping
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from snail_client.progress import bar
@@ -25,57 +29,87 @@ from .netlab.namespaces import LINKS, Lab, LabError, Shape
 from .netlab.services import LabServices, lab_services
 
 
+@dataclass(frozen=True)
+class Phase:
+    """One measurement: a name, the shaping of the links it names (others unshaped),
+    and whether it is a control run (every link through the shaper, zero shaping)."""
+
+    name: str
+    shapes: Mapping[str, Shape] = field(default_factory=dict)
+    control: bool = False
+
+
 def netem_report(specs: list[Spec], repeat: int, shapes: Mapping[str, Shape],
                  baseline: bool = True, measure_seconds: float = 1.0,
                  congestion: str | None = None, slow_start_after_idle: bool | None = None,
                  quiet: bool = True,
-                 on_done: Callable[[str, dict], object] | None = None) -> dict:
-    """``{"netem": {"shaping", "tcp", "links", "service"[, "unshaped": {"links",
-    "service"}]}}``: configured shaping per link, the TCP settings in force (``congestion``
-    and ``slow_start_after_idle`` set them inside the lab; None: the kernel's), measured
-    RTT and rate per link, and the service report (FORMATS.md) run from the client's
-    namespace."""
+                 on_done: Callable[[str, dict], object] | None = None,
+                 shaper: str = "auto", control: bool = True,
+                 service_args: tuple[str, ...] = ()) -> dict:
+    """``{"netem": {"shaping", "tcp", "shaper", "forwarder", "links", "service",
+    "wire_cpu_s"[, "unshaped": {...}][, "control": {...}]}}``: configured shaping per
+    link, the TCP settings in force (``congestion`` and ``slow_start_after_idle`` set
+    them inside the lab; None: the kernel's), the shaper used, measured RTT and rate per
+    link, the service report (FORMATS.md) run from the client's namespace with
+    ``service_args`` added, and the forwarder's CPU seconds over it."""
     shaped = {link: shapes.get(link, Shape()) for link in LINKS}
-    phases = ([("unshaped", {link: Shape() for link in LINKS})] if baseline else []) + \
-        [("shaped", shaped)]
-    tcp, results = run_phases(specs, repeat, phases, measure_seconds, congestion,
-                              slow_start_after_idle, quiet, on_done)
+    phases = [Phase("unshaped")] if baseline else []
+    phases += [Phase("control", control=True)] if control else []
+    phases.append(Phase("shaped", shaped))
+    tcp, lab, results = run_phases(specs, repeat, phases, measure_seconds, congestion,
+                                   slow_start_after_idle, quiet, on_done, shaper,
+                                   service_args)
     report = {"shaping": {link: asdict(shape) for link, shape in shaped.items()},
-              "tcp": tcp, **results["shaped"]}
-    if baseline:
-        report["unshaped"] = results["unshaped"]
+              "tcp": tcp, **lab, **results["shaped"]}
+    for name in ("unshaped", "control"):
+        if name in results:
+            report[name] = results[name]
     return {"netem": report}
 
 
-def run_phases(specs: list[Spec], repeat: int, phases: list[tuple[str, Mapping[str, Shape]]],
+def run_phases(specs: list[Spec], repeat: int, phases: list[Phase | tuple],
                measure_seconds: float = 1.0, congestion: str | None = None,
                slow_start_after_idle: bool | None = None, quiet: bool = True,
                on_done: Callable[[str, dict], object] | None = None,
-               ) -> tuple[dict, dict[str, dict]]:
-    """One lab, one pair of daemons, and per phase (a name and the shaping of the links
-    it names; others unshaped): measured links, then the service report. Returns the TCP
-    settings in force and ``{phase: {"links", "service"}}``."""
+               shaper: str = "auto", service_args: tuple[str, ...] = (),
+               ) -> tuple[dict, dict, dict[str, dict]]:
+    """One lab, one pair of daemons, and per phase (a Phase, or a (name, shapes) pair):
+    measured links, then the service report and the forwarder's CPU seconds over it.
+    Returns the TCP settings in force, ``{"shaper", "forwarder"}`` (the shaper the lab
+    chose; the forwarder that ran, "native" or "python", or None) and ``{phase:
+    {"links", "service", "wire_cpu_s"}}``."""
     results: dict[str, dict] = {}
-    with tempfile.TemporaryDirectory(prefix="snail-netem-") as tmp, Lab() as lab:
+    phases = [p if isinstance(p, Phase) else Phase(*p) for p in phases]
+    forwarders: set[str] = set()
+    with tempfile.TemporaryDirectory(prefix="snail-netem-") as tmp, Lab(shaper) as lab:
         lab.tune_tcp(congestion, slow_start_after_idle)  # before any daemon connects
         tcp = lab.tcp_settings()
         with lab_services(lab, Path(tmp)) as services, \
                 bar(len(phases) * (len(LINKS) + 1), "netem", quiet, "step") as progress:
-            for name, phase in phases:
-                lab.shape({link: phase.get(link, Shape()) for link in LINKS})
+            for phase in phases:
+                lab.shape({link: phase.shapes.get(link, Shape()) for link in LINKS},
+                          control=phase.control)
                 links = {}
                 for link in LINKS:
                     links[link] = lab.measure(link, measure_seconds)
                     progress.update(1)
-                service = run_service(lab, services, specs, repeat)
+                cpu = lab.wire_cpu_s()
+                service = run_service(lab, services, specs, repeat, service_args)
+                results[phase.name] = {"links": links, **service,
+                                       "wire_cpu_s": round(lab.wire_cpu_s() - cpu, 3)}
+                if lab.running_wire():
+                    forwarders.add(lab.forwarder)
                 progress.update(1)
-                results[name] = {"links": links, **service}
                 if on_done is not None:
-                    on_done(name, results[name])
-    return tcp, results
+                    on_done(phase.name, results[phase.name])
+        chosen = lab.shaper
+    forwarder = "python" if "python" in forwarders else (forwarders.pop() if forwarders
+                                                         else None)
+    return tcp, {"shaper": chosen, "forwarder": forwarder}, results
 
 
-def run_service(lab: Lab, services: LabServices, specs: list[Spec], repeat: int) -> dict:
+def run_service(lab: Lab, services: LabServices, specs: list[Spec], repeat: int,
+                extra: tuple[str, ...] = ()) -> dict:
     """``snail-bench service`` in the client's namespace against the lab's daemons: its
     ``{"service": ...}`` report."""
     report: dict[str, dict] = {}
@@ -88,7 +122,7 @@ def run_service(lab: Lab, services: LabServices, specs: list[Spec], repeat: int)
                *(("--solve", "client") if solver == CLIENT
                  else ("--solve", "circuit", "--solver", solver)),
                *(arg for n in points for arg in ("--points", str(n))), "--repeat",
-               str(repeat), *services.client_args(), "--json"]
+               str(repeat), *services.client_args(), *extra, "--json"]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
             tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]

@@ -166,8 +166,9 @@ def sweep(plan: Plan) -> dict:
     phases = [(f"{d:g}ms", {"garbler_evaluator": Shape(d, rate_mbit=SERVER_RATE_MBIT)})
               for d in (0.0, 5.0)]
     try:
-        tcp, phase_rows = run_phases(_unique(specs), plan.repeat, phases)
-        lab: str | dict = {"tcp": tcp, "links": {k: v["links"] for k, v in phase_rows.items()}}
+        tcp, shaper, phase_rows = run_phases(_unique(specs), plan.repeat, phases)
+        lab: str | dict = {"tcp": tcp, **shaper,
+                           "links": {k: v["links"] for k, v in phase_rows.items()}}
         rows = {name: row["service"] for name, row in phase_rows.items()}
     except LabUnavailable as exc:
         lab = f"unavailable: {exc}; 0 ms measured on loopback, 5 ms not measured"
@@ -185,11 +186,12 @@ def sweep(plan: Plan) -> dict:
 def latency_sweep(repeat: int) -> dict:
     """n = 6 LM per iteration vs one-way delay on each link class; round trips read off
     the slope (least squares over the delays; a round trip costs 2 delays)."""
-    from .netem import run_phases
+    from .netem import Phase, run_phases
     from .netlab.namespaces import LabUnavailable, Shape
 
     client = ("client_garbler", "client_evaluator")
-    phases = [("server_0ms", {})]
+    # 0 ms through the forwarder too (a control run), so the slope is the delay's alone
+    phases: list = [Phase("server_0ms", control=True)]
     phases += [(f"server_{d:g}ms", {"garbler_evaluator": Shape(d)})
                for d in LATENCY_DELAYS_MS[1:]]
     phases += [(f"client_{d:g}ms", {link: Shape(d) for link in client})
@@ -198,10 +200,10 @@ def latency_sweep(repeat: int) -> dict:
         # the kernel's own TCP, as users get it: the client's links run cubic from their
         # first packet (net/conn.py), so a burst of labels takes one round trip
         spec = sil_spec("lm", 6)
-        tcp, rows = run_phases([spec], max(repeat, 5), phases)
+        tcp, shaper, rows = run_phases([spec], max(repeat, 5), phases)
     except LabUnavailable as exc:
         return {"lab": f"unavailable: {exc}"}
-    out: dict = {"tcp": tcp, "delays_ms": list(LATENCY_DELAYS_MS)}
+    out: dict = {"tcp": tcp, **shaper, "delays_ms": list(LATENCY_DELAYS_MS)}
     for side in ("server", "client"):
         names = ["server_0ms"] + [f"{side}_{d:g}ms" for d in LATENCY_DELAYS_MS[1:]]
         per_it = [rows[name]["service"][spec.circuit_id]["median_s"] for name in names]
