@@ -19,7 +19,7 @@ def test_auto_takes_netem_where_the_kernel_has_it_and_the_forwarder_elsewhere():
 
 
 def test_netem_asked_for_on_a_kernel_without_it_says_why():
-    with pytest.raises(ShaperUnavailable, match="no netem qdisc.*kind is unknown"):
+    with pytest.raises(ShaperUnavailable, match=r"no netem qdisc.*kind is unknown"):
         choose("netem", "Error: Specified qdisc kind is unknown.")
     with pytest.raises(ValueError, match="shaper must be one of"):
         choose("fast", None)
