@@ -9,9 +9,15 @@ import json
 import sys
 
 import click
+from click.core import ParameterSource
+
+from snail_common.gc.stream import SCHEMES
 
 from .choices import SERVICE_POINTS, spec
+from .netlab.profiles import PROFILES, profile_shapes
 from .netlab.shaper import SHAPERS
+
+SCHEME_CHOICES = list(SCHEMES)
 
 
 @click.command()
@@ -53,12 +59,29 @@ from .netlab.shaper import SHAPERS
 @click.option("--control/--no-control", default=True, show_default=True,
               help="Also run every link through the shaper with zero delay and no rate "
                    "and report it under 'control': what the lab itself costs.")
+@click.option("--profile", type=click.Choice(list(PROFILES)), default=None,
+              help="Named link settings (one way / rate; explicit link flags override): "
+                   "lan 0.25 ms / 10 Gbit/s between the servers, 0.25 ms / 1 Gbit/s to "
+                   "the client; paper 5 ms / 2.5 Gbit/s, client unshaped; region 10 ms / "
+                   "1 Gbit/s, 20 ms / 100 Mbit/s; continent 40 ms / 1 Gbit/s, 30 ms / "
+                   "50 Mbit/s.")
+@click.option("--localize", "localize", type=click.IntRange(0, 100), default=0,
+              is_flag=False, flag_value=3, metavar="[K]",
+              help="Also K whole padded localizations per --points (default 3, after one "
+                   "to warm up; 20 invocations each) in the shaped and unshaped runs: the "
+                   "median's wall time, invocations and bytes per link against the bound "
+                   "its links set: max(garbler->evaluator bytes / measured server rate, "
+                   "invocations x measured client round trip).")
+@click.option("--scheme", type=click.Choice(SCHEME_CHOICES), default=None,
+              help="Garbling scheme of the sessions (default: the client's).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_ms: float,
-          client_rate_mbit: float | None, jitter_ms: float, loss_pct: float,
-          server_loss_pct: float, algorithm: str, points: tuple[int, ...], repeat: int,
-          baseline: bool, measure_seconds: float, congestion_control: str | None,
-          slow_start_after_idle: bool | None, shaper: str, control: bool,
+@click.pass_context
+def netem(ctx: click.Context, server_delay_ms: float, server_rate_mbit: float | None,
+          client_delay_ms: float, client_rate_mbit: float | None, jitter_ms: float,
+          loss_pct: float, server_loss_pct: float, algorithm: str, points: tuple[int, ...],
+          repeat: int, baseline: bool, measure_seconds: float,
+          congestion_control: str | None, slow_start_after_idle: bool | None, shaper: str,
+          control: bool, profile: str | None, localize: int, scheme: str | None,
           as_json: bool) -> None:
     """`service` over shaped links: the client, garbler and evaluator as three hosts in
     network namespaces (needs root), each link with its own rate, delay, jitter and loss;
@@ -71,6 +94,19 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
     def jitter(delay: float) -> float:
         return jitter_ms if delay else 0.0
 
+    if profile is not None:  # the profile's values where no flag was given
+        given = {name for name in ctx.params
+                 if ctx.get_parameter_source(name) is not ParameterSource.DEFAULT}
+        base = profile_shapes(profile)
+        server_base, client_base = base["garbler_evaluator"], base["client_evaluator"]
+        if "server_delay_ms" not in given:
+            server_delay_ms = server_base.delay_ms
+        if "server_rate_mbit" not in given:
+            server_rate_mbit = server_base.rate_mbit
+        if "client_delay_ms" not in given:
+            client_delay_ms = client_base.delay_ms
+        if "client_rate_mbit" not in given:
+            client_rate_mbit = client_base.rate_mbit
     try:
         server = Shape(server_delay_ms, jitter(server_delay_ms), server_loss_pct,
                        server_rate_mbit)
@@ -89,7 +125,8 @@ def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_m
     try:
         report = netem_report(specs, repeat, shapes, baseline, measure_seconds,
                               congestion_control, slow_start_after_idle,
-                              flags.get("quiet", False), done, shaper, control)
+                              flags.get("quiet", False), done, shaper, control, scheme,
+                              localize, profile)
     except LabUnavailable as e:
         click.echo(f"snail-bench: {e}", err=True)
         sys.exit(2)
@@ -128,6 +165,11 @@ def show_netem(body: dict) -> None:
                           f"({(r['median_s'] - base[name]['median_s']) * 1000:+.0f} ms)")
             click.echo(f"  {name:>18}: median {r['median_s']:.3f} s (min {r['min_s']:.3f}, "
                        f"max {r['max_s']:.3f}){versus}; {r['scheme']}")
+        for name, loc in row.get("localization", {}).items():
+            mb = loc["bytes"]["garbler_to_evaluator"] / 1e6
+            click.echo(f"  {name:>18}: localization {loc['wall_s']:.2f} s ({loc['invocations']}"
+                       f" invocations, {mb:.1f} MB garbler->evaluator); its links' bound "
+                       f"{loc['link_bound_s']:.2f} s: {loc['bound_ratio']:.2f} x the bound")
 
 
 @click.command()

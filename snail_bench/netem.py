@@ -25,6 +25,7 @@ from snail_client.progress import bar
 from snail_common.pnp.sil import CLIENT
 from snail_common.pnp.spec import Spec
 
+from .linkbound import bounded
 from .netlab.namespaces import LINKS, Lab, LabError, Shape
 from .netlab.services import LabServices, lab_services
 
@@ -45,21 +46,27 @@ def netem_report(specs: list[Spec], repeat: int, shapes: Mapping[str, Shape],
                  quiet: bool = True,
                  on_done: Callable[[str, dict], object] | None = None,
                  shaper: str = "auto", control: bool = True,
-                 service_args: tuple[str, ...] = ()) -> dict:
-    """``{"netem": {"shaping", "tcp", "shaper", "forwarder", "links", "service",
-    "wire_cpu_s"[, "unshaped": {...}][, "control": {...}]}}``: configured shaping per
-    link, the TCP settings in force (``congestion`` and ``slow_start_after_idle`` set
-    them inside the lab; None: the kernel's), the shaper used, measured RTT and rate per
-    link, the service report (FORMATS.md) run from the client's namespace with
-    ``service_args`` added, and the forwarder's CPU seconds over it."""
+                 scheme: str | None = None, localize: int = 0,
+                 profile: str | None = None) -> dict:
+    """``{"netem": {"profile", "shaping", "tcp", "shaper", "forwarder", "links",
+    "service", "wire_cpu_s"[, "localization"][, "unshaped": {...}][, "control":
+    {...}]}}``: configured shaping per link, the TCP settings in force (``congestion``
+    and ``slow_start_after_idle`` set them inside the lab; None: the kernel's), the
+    shaper used, measured RTT and rate per link, the service report (FORMATS.md) run
+    from the client's namespace with ``--scheme scheme`` (None: its default), and the
+    forwarder's CPU
+    seconds over it. ``localize`` > 0: that many whole padded localizations per circuit
+    (after one to warm up) in the shaped and unshaped runs, each circuit's median run
+    against its link bound (linkbound.py) under ``"localization"``."""
     shaped = {link: shapes.get(link, Shape()) for link in LINKS}
     phases = [Phase("unshaped")] if baseline else []
     phases += [Phase("control", control=True)] if control else []
     phases.append(Phase("shaped", shaped))
     tcp, lab, results = run_phases(specs, repeat, phases, measure_seconds, congestion,
                                    slow_start_after_idle, quiet, on_done, shaper,
-                                   service_args)
-    report = {"shaping": {link: asdict(shape) for link, shape in shaped.items()},
+                                   scheme, localize)
+    report = {"profile": profile,
+              "shaping": {link: asdict(shape) for link, shape in shaped.items()},
               "tcp": tcp, **lab, **results["shaped"]}
     for name in ("unshaped", "control"):
         if name in results:
@@ -71,21 +78,23 @@ def run_phases(specs: list[Spec], repeat: int, phases: list[Phase | tuple],
                measure_seconds: float = 1.0, congestion: str | None = None,
                slow_start_after_idle: bool | None = None, quiet: bool = True,
                on_done: Callable[[str, dict], object] | None = None,
-               shaper: str = "auto", service_args: tuple[str, ...] = (),
-               ) -> tuple[dict, dict, dict[str, dict]]:
+               shaper: str = "auto", scheme: str | None = None,
+               localize: int = 0) -> tuple[dict, dict, dict[str, dict]]:
     """One lab, one pair of daemons, and per phase (a Phase, or a (name, shapes) pair):
     measured links, then the service report and the forwarder's CPU seconds over it.
     Returns the TCP settings in force, ``{"shaper", "forwarder"}`` (the shaper the lab
     chose; the forwarder that ran, "native" or "python", or None) and ``{phase:
-    {"links", "service", "wire_cpu_s"}}``."""
+    {"links", "service", "wire_cpu_s"[, "localization"]}}`` (localizations in every
+    phase but the control run, when ``localize`` > 0)."""
     results: dict[str, dict] = {}
     phases = [p if isinstance(p, Phase) else Phase(*p) for p in phases]
     forwarders: set[str] = set()
     with tempfile.TemporaryDirectory(prefix="snail-netem-") as tmp, Lab(shaper) as lab:
         lab.tune_tcp(congestion, slow_start_after_idle)  # before any daemon connects
         tcp = lab.tcp_settings()
+        steps = len(LINKS) + 1 + (1 if localize else 0)
         with lab_services(lab, Path(tmp)) as services, \
-                bar(len(phases) * (len(LINKS) + 1), "netem", quiet, "step") as progress:
+                bar(len(phases) * steps, "netem", quiet, "step") as progress:
             for phase in phases:
                 lab.shape({link: phase.shapes.get(link, Shape()) for link in LINKS},
                           control=phase.control)
@@ -94,9 +103,15 @@ def run_phases(specs: list[Spec], repeat: int, phases: list[Phase | tuple],
                     links[link] = lab.measure(link, measure_seconds)
                     progress.update(1)
                 cpu = lab.wire_cpu_s()
-                service = run_service(lab, services, specs, repeat, service_args)
+                service = run_service(lab, services, specs, repeat, scheme)
                 results[phase.name] = {"links": links, **service,
                                        "wire_cpu_s": round(lab.wire_cpu_s() - cpu, 3)}
+                if localize and not phase.control:
+                    results[phase.name]["localization"] = {
+                        spec.circuit_id: bounded(run_localization(
+                            lab, services, spec.points, localize, scheme), links)
+                        for spec in specs}
+                    progress.update(1)
                 if lab.running_wire():
                     forwarders.add(lab.forwarder)
                 progress.update(1)
@@ -108,8 +123,22 @@ def run_phases(specs: list[Spec], repeat: int, phases: list[Phase | tuple],
     return tcp, {"shaper": chosen, "forwarder": forwarder}, results
 
 
+def run_localization(lab: Lab, services: LabServices, points: int, repeat: int,
+                     scheme: str | None = None) -> dict:
+    """``linkbound.py`` in the client's namespace: ``repeat`` padded localizations of a
+    ``points``-point scene (after one to warm up), the median run's figures."""
+    cmd = [*lab.exec_prefix("client"), sys.executable, "-m", "snail_bench.linkbound",
+           "--points", str(points), "--repeat", str(repeat), *services.client_args(),
+           *(("--scheme", scheme) if scheme else ())]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
+        raise LabError(f"a localization in the client's namespace failed: {tail[0]}")
+    return json.loads(proc.stdout)
+
+
 def run_service(lab: Lab, services: LabServices, specs: list[Spec], repeat: int,
-                extra: tuple[str, ...] = ()) -> dict:
+                scheme: str | None = None) -> dict:
     """``snail-bench service`` in the client's namespace against the lab's daemons: its
     ``{"service": ...}`` report."""
     report: dict[str, dict] = {}
@@ -122,7 +151,8 @@ def run_service(lab: Lab, services: LabServices, specs: list[Spec], repeat: int,
                *(("--solve", "client") if solver == CLIENT
                  else ("--solve", "circuit", "--solver", solver)),
                *(arg for n in points for arg in ("--points", str(n))), "--repeat",
-               str(repeat), *services.client_args(), *extra, "--json"]
+               str(repeat), *services.client_args(),
+               *(("--scheme", scheme) if scheme else ()), "--json"]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
             tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
