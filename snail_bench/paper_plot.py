@@ -13,6 +13,28 @@ import numpy as np
 
 PAPER_STYLE = {"linestyle": "--", "marker": "s", "alpha": 0.8}
 OURS_STYLE = {"linestyle": "-", "marker": "o"}
+# series that may coincide (ours LM and GN per iteration differ by a few AND gates) each
+# get their own line style and an unfilled marker of their own shape, so one drawn over
+# another still shows both; the colour tells the delay apart too
+_LINES = {("paper", "lm"): "--", ("paper", "gn"): "-.", ("ours", "lm"): "-",
+          ("ours", "gn"): ":"}
+_MARKERS = {("paper", "lm", "0ms"): "s", ("paper", "gn", "0ms"): "D",
+            ("paper", "lm", "5ms"): "v", ("paper", "gn", "5ms"): "*",
+            ("ours", "lm", "0ms"): "o", ("ours", "gn", "0ms"): "x",
+            ("ours", "lm", "5ms"): "^", ("ours", "gn", "5ms"): "+"}
+_COLORS = {"": "C0", "0ms": "C0", "5ms": "C3"}
+
+
+def series_style(source: str, alg: str, phase: str = "") -> dict:
+    """Line style, marker and colour of one series: unique per (source, algorithm,
+    delay), markers unfilled and GN's drawn above LM's."""
+    color = _COLORS[phase] if source == "ours" else {"0ms": "C7", "5ms": "C1", "": "C7"}[
+        phase]
+    marker = _MARKERS[source, alg, phase or "0ms"]
+    return {"linestyle": _LINES[source, alg], "marker": marker,
+            "markersize": 9 if alg == "lm" else 7, "markerfacecolor": "none",
+            "markeredgewidth": 1.5, "color": color, "zorder": 3 if alg == "gn" else 2,
+            "alpha": 0.8 if source == "paper" else 1.0}
 
 
 def _pyplot():
@@ -62,18 +84,19 @@ def _sil_vs_do(plt, results: dict, paper: dict, out: Path) -> str:
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for alg in ("lm", "gn"):
         ax.plot(ref["n"], ref[f"{alg}_sil_total_s"], label=f"paper SIL {alg.upper()}",
-                **PAPER_STYLE)
+                **series_style("paper", alg, "0ms"))
         ax.plot(ref["n"], ref[f"{alg}_do_total_s"], label=f"paper DO {alg.upper()}",
-                **PAPER_STYLE)
+                **series_style("paper", alg, "5ms"))
     sil = results["totals"]["sil"].values()
     do = results["totals"]["do"].values()
     for alg in ("lm", "gn"):
         mine = sorted((r["n"], r["total_s"]) for r in sil if r["algorithm"] == alg)
         if mine:
-            ax.plot(*zip(*mine), label=f"ours SIL {alg.upper()}", **OURS_STYLE)
+            ax.plot(*zip(*mine), label=f"ours SIL {alg.upper()}",
+                    **series_style("ours", alg, "0ms"))
     mine_do = sorted((r["n"], r["total_s"]) for r in do)
     if mine_do:
-        ax.plot(*zip(*mine_do), label="ours DO LM", **OURS_STYLE)
+        ax.plot(*zip(*mine_do), label="ours DO LM", **series_style("ours", "lm", "5ms"))
     ax.set(yscale="log", xlabel="points n", ylabel="one localization (s, log)",
            title="SIL (>= 20 invocations) vs data-oblivious (one circuit)")
     ax.legend(fontsize=8)
@@ -105,11 +128,11 @@ def _per_iteration(plt, results: dict, paper: dict, out: Path) -> str:
         ref = paper[key]
         for alg in ("lm", "gn"):
             ax.plot(ref["n"], ref[f"{alg}_s_per_iteration"],
-                    label=f"paper {alg.upper()} {phase}", **PAPER_STYLE)
+                    label=f"paper {alg.upper()} {phase}", **series_style("paper", alg, phase))
             mine = _series(results).get(f"{alg}_{phase}", [])
             if mine:
                 ax.plot([r["n"] for r in mine], [r["per_iteration_s"] for r in mine],
-                        label=f"ours {alg.upper()} {phase}", **OURS_STYLE)
+                        label=f"ours {alg.upper()} {phase}", **series_style("ours", alg, phase))
             for r in mine:
                 p = _at(ref["n"], ref[f"{alg}_s_per_iteration"], r["n"])
                 rows.append([alg.upper(), phase, str(r["n"]), _fmt(p),
@@ -130,11 +153,11 @@ def _bytes(plt, results: dict, paper: dict, out: Path) -> str:
     rows = []
     for alg in ("lm", "gn"):
         ax.plot(ref["n"], ref[f"{alg}_bytes_per_iteration"], label=f"paper {alg.upper()}",
-                **PAPER_STYLE)
+                **series_style("paper", alg))
         mine = _series(results).get(f"{alg}_0ms", [])
         if mine:
             ax.plot([r["n"] for r in mine], [r["bytes"] for r in mine],
-                    label=f"ours {alg.upper()}", **OURS_STYLE)
+                    label=f"ours {alg.upper()}", **series_style("ours", alg))
         for r in mine:
             p = _at(ref["n"], ref[f"{alg}_bytes_per_iteration"], r["n"])
             rows.append([alg.upper(), str(r["n"]), _fmt(p), _fmt(r["bytes"]),
