@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from snail_client.verbosity import VerbosityGroup
 from snail_common import families
 from snail_common.circuit import evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import BristolError, load_bristol
@@ -41,7 +42,8 @@ def _emit(report: dict, as_json: bool) -> None:
 ACCURACY_TARGETS = {"lm": 0.999, "gn": 0.99}  # pass rates `accuracy` holds the loop to
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+@click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="snail", prog_name="snail-bench")
 @click.option("-v", "--verbose", is_flag=True, help="Report each measurement on stderr "
                                                     "as it finishes.")
@@ -261,7 +263,7 @@ def _print_service(measure: Callable[[], dict], as_json: bool,
                    show: Callable[[dict], None]) -> None:
     """The end of ``service``, with or without --map-points: ``measure``'s report as one
     JSON object or as ``show`` prints it; exit 1 if the service fails."""
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     try:
         report = measure()
@@ -367,7 +369,7 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
                        "pip install 'snail[bench]'", err=True)
             sys.exit(2)
     flags = click.get_current_context().find_object(dict) or {}
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     try:
         report = run_soak(plan, flags.get("quiet", False), out)

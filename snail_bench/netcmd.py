@@ -198,7 +198,7 @@ def paper(out: str, quick: bool, paper_results: str | None) -> None:
     click.echo(f"snail-bench: the {'quick' if quick else 'full'} plan takes about "
                f"{plan.expected_minutes():g} minutes on 2 idle cores with a cold circuit "
                f"cache (twice that with other work on them).", err=True)
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     from .netlab.namespaces import LabError
 
