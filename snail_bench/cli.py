@@ -14,7 +14,8 @@ from snail_client.verbosity import VerbosityGroup
 from snail_common import families
 from snail_common.circuit import evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import BristolError, load_bristol
-from snail_common.gc.stream import DEFAULT_SCHEME, SCHEMES
+from snail_common.gc.stream import SCHEMES
+from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
 
 from .choices import SERVICE_POINTS
 from .choices import spec as _spec
@@ -206,10 +207,11 @@ def engine(schemes: tuple[str, ...], as_json: bool) -> None:
 @click.option("--lane-window-ms", type=click.FloatRange(0, 1000), default=None,
               help="Embedded daemons only: their --lane-window-ms (batch concurrent "
                    "sessions into lanes; 0: off; default: the daemons' own).")
-@click.option("--scheme", type=click.Choice(list(SCHEMES)),
-              default=DEFAULT_SCHEME, show_default=True,
+@click.option("--scheme", type=click.Choice(list(CLIENT_SCHEMES)),
+              default=AUTO, show_default=True,
               help="Garbling scheme of every session: three-halves sends 0.77x the table "
-                   "bytes but garbles slower, and is never batched into lanes.")
+                   "bytes but garbles slower, and is never batched into lanes; auto picks "
+                   "per session from the garbler's measured rates (the client's default).")
 @click.option("--map-points", "map_points", type=click.IntRange(4, 1_000_000), multiple=True,
               metavar="M", help="The map-owner setting's extra cost: for each --points n "
               "and each M (repeat for several), a snail-mapd on loopback holds a random "

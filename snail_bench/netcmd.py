@@ -11,13 +11,13 @@ import sys
 import click
 from click.core import ParameterSource
 
-from snail_common.gc.stream import SCHEMES
+from snail_common.net.linkrates import CLIENT_SCHEMES
 
 from .choices import SERVICE_POINTS, spec
 from .netlab.profiles import PROFILES, profile_shapes
 from .netlab.shaper import SHAPERS
 
-SCHEME_CHOICES = list(SCHEMES)
+SCHEME_CHOICES = list(CLIENT_SCHEMES)
 
 
 @click.command()

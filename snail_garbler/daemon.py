@@ -164,6 +164,7 @@ class GarblerDaemon(Daemon):
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
             owner = await self.owners.feed(req, circuit, self.options.session_timeout)
             scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
+            record["scheme"] = req.get("scheme", DEFAULT_SCHEME)
             block, frame = frame_plan(schedule, scheme)
             garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
                                              req["delta"], req["key"], block, frame)
@@ -189,6 +190,7 @@ class GarblerDaemon(Daemon):
                 self.rates.garbled(scheme, schedule.n_and, timeline.pop("cpu_s") / lanes)
                 self.rates.streamed(tcp_info(evaluator.transport.get_extra_info("socket")))
                 timeline["request"] = t_wall
+                record["timeline"] = timeline
                 replied = self._reply(client, sid, garbler, sent, {
                     "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
                     "lanes": float(lanes), **{f"t_{k}": v for k, v in timeline.items()},

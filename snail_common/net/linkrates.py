@@ -6,18 +6,21 @@ The garbler measures both on its own sessions: its garbling rate per scheme (AND
 per CPU second of the thread that garbled them) and the table stream's delivery rate and
 round trip (``tcpinfo``: the kernel's sample, used only when the stream, not the garbler,
 was the limit). It reports them in each session's ``stats``; a client asking for
-``auto`` picks the scheme of its next session from them (``pick_scheme``).
+``auto`` picks the scheme of its next session from them (``pick_scheme``), and every
+client sizes its garble-ahead depth from them (``ahead_depth``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES, table_words
 
 from .tcpinfo import TcpInfo
 
-AUTO = "auto"
+AUTO = "auto"  # the client's default: the scheme picked per session from the measurements
+CLIENT_SCHEMES = (AUTO, "halfgates", "threehalves")
 EWMA = 0.3  # weight of the newest sample
 # three-halves garbles at about this share of half-gates' rate on one core (README:
 # 3.0 vs 7.9 M AND/s on wide steps); used until the garbler has measured both
@@ -105,3 +108,23 @@ def pick_scheme(report: dict[str, float] | None) -> str:
                             report["and_per_s_halfgates"] * THREE_HALVES_SHARE)
     three = seconds_per_and(SCHEME_THREE_HALVES, three_rate, link)
     return "threehalves" if three < half else "halfgates"
+
+
+MAX_AHEAD = 3  # sessions garbled ahead at most: each holds a stream and evaluator memory
+
+
+def ahead_depth(report: dict[str, float], n_and: int, scheme: str, table_bytes: int,
+                interval_s: float, most: int = MAX_AHEAD) -> int:
+    """Sessions to keep garbled ahead so that the next one's tables are all at the
+    evaluator when it is invoked: a session asked for now is needed ``depth``
+    invocations (of ``interval_s`` each) later, and takes its garbling at the
+    garbler's own rate, its ``table_bytes`` over the link's rate and the link's one-way
+    delay to get there (the bandwidth-delay product in time). 1 while nothing is
+    measured; at most ``most``."""
+    rate = report.get(f"and_per_s_{scheme}")
+    if not rate or interval_s <= 0:
+        return 1
+    lag = n_and / rate + report.get("link_rtt_ms", 0.0) / 2000
+    if report.get("link_mbit"):
+        lag += table_bytes * 8 / (report["link_mbit"] * 1e6)
+    return max(1, min(most, math.ceil(lag / interval_s)))
