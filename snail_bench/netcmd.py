@@ -144,7 +144,8 @@ def netem(ctx: click.Context, server_delay_ms: float, server_rate_mbit: float | 
 
 def show_netem(body: dict) -> None:
     """The netem report as a person reads it: per phase the links as measured and each
-    circuit's wall-time median, the forwarder's CPU; the
+    circuit's wall-time median, the evaluator's wait for tables, the median session's
+    timeline (where the time went), the forwarder's CPU; the
     control run and the shaped run against the unshaped one."""
     forwarder = f" ({body['forwarder']} forwarder)" if body.get("forwarder") else ""
     click.echo(f"shaper: {body['shaper']}{forwarder}; tcp: {body['tcp']['congestion_control']}"
@@ -164,7 +165,11 @@ def show_netem(body: dict) -> None:
                 versus = (f", {r['median_s'] / base[name]['median_s']:.2f} x unshaped "
                           f"({(r['median_s'] - base[name]['median_s']) * 1000:+.0f} ms)")
             click.echo(f"  {name:>18}: median {r['median_s']:.3f} s (min {r['min_s']:.3f}, "
-                       f"max {r['max_s']:.3f}){versus}; {r['scheme']}")
+                       f"max {r['max_s']:.3f}){versus}; evaluator waited for tables "
+                       f"{r['evaluator_wait_s'] * 1000:.1f} ms; {r['scheme']}")
+            if r.get("timeline_ms"):
+                click.echo(f"  {'':>18}  ms after the garbler's request: " + ", ".join(
+                    f"{event} {ms:.0f}" for event, ms in r["timeline_ms"].items()))
         for name, loc in row.get("localization", {}).items():
             mb = loc["bytes"]["garbler_to_evaluator"] / 1e6
             click.echo(f"  {name:>18}: localization {loc['wall_s']:.2f} s ({loc['invocations']}"

@@ -83,14 +83,39 @@ def _measure(runner: SecureRunner, spec: Spec, repeat: int) -> dict:
     beyond = [run.wall_s - run.timing.get("evaluator_evaluate_s", 0.0) + wait
               for run, wait in zip(warm, waits)]
     schemes = sorted({run.scheme for run in warm})
+    timeline = _timeline(warm)
     return {"and": iface.counts["and"], "depth": iface.depth, "first_s": round(first.wall_s, 4),
             "median_s": round(statistics.median(walls), 4), "min_s": round(min(walls), 4),
             "max_s": round(max(walls), 4), "repeat": repeat,
             "median_beyond_evaluate_s": round(statistics.median(beyond), 4),
             "evaluator_wait_s": round(statistics.median(waits), 4),
             "scheme": schemes[0] if len(schemes) == 1 else "+".join(schemes),
+            **({"timeline_ms": timeline} if timeline else {}),
             "traffic": warm[-1].traffic,
             "timing": {k: round(v, 4) for k, v in warm[-1].timing.items()}}
+
+
+# a session's events in the daemons' timelines, in the order they should happen
+TIMELINE = (("garbler_t_first_sent", "first table sent"),
+            ("evaluator_t_first_received", "first table received"),
+            ("garbler_t_garbled", "last table garbled"),
+            ("garbler_t_last_sent", "last table sent"),
+            ("evaluator_t_last_received", "last table received"),
+            ("evaluator_t_labels", "client's labels in"),
+            ("evaluator_t_eval_end", "evaluation done"))
+
+
+def _timeline(runs: list[Invocation]) -> dict[str, float]:
+    """Median milliseconds from the garbler's receipt of each session's request to each
+    event of its timeline (both daemons' clocks: one host here, synchronized across
+    hosts), over ``runs``: where a session's time went."""
+    out = {}
+    for key, name in TIMELINE:
+        offsets = [run.timing[key] - run.timing["garbler_t_request"] for run in runs
+                   if key in run.timing and "garbler_t_request" in run.timing]
+        if offsets:
+            out[name] = round(statistics.median(offsets) * 1000, 2)
+    return out
 
 
 def _fleet(runner: SecureRunner, spec: Spec, repeat: int, clients: int) -> dict:
