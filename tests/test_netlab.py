@@ -105,6 +105,29 @@ def test_unshaped_links_are_direct_and_the_control_run_crosses_the_forwarder():
     assert lab.leftovers() == []
 
 
+def test_the_control_run_the_wait_and_the_scheme_are_in_the_json():
+    """netem --json: the shaper, the control run through the forwarder beside the direct
+    one, the forwarder's CPU, and per circuit the evaluator's wait for tables (never
+    subtracted from the wall time) and the scheme its sessions used."""
+    proc = subprocess.run([sys.executable, "-m", "snail_bench.cli", "-q", "netem",
+                           "--points", "6", "--repeat", "2", "--server-delay-ms", "2",
+                           "--measure-seconds", "0.2", "--json"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    body = json.loads(proc.stdout)["netem"]
+    assert body["shaper"] in ("netem", "forwarder") and body["profile"] is None
+    for phase in (body, body["unshaped"], body["control"]):
+        row = phase["service"]["nx-sil-n6"]
+        assert row["evaluator_wait_s"] >= 0 and row["scheme"] in ("halfgates", "threehalves")
+        assert row["median_s"] >= row["evaluator_wait_s"]
+        assert phase["wire_cpu_s"] >= 0
+    assert body["unshaped"]["wire_cpu_s"] == 0  # direct: nothing in user space
+    if body["shaper"] == "forwarder":
+        assert body["control"]["wire_cpu_s"] > 0 and body["forwarder"] in ("native",
+                                                                           "python")
+    assert "first table received" in body["service"]["nx-sil-n6"]["timeline_ms"]
+
+
 def test_the_netem_shaper_where_the_kernel_has_it():
     with Lab() as probe:
         chosen = probe.shaper
