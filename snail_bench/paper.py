@@ -49,6 +49,7 @@ PAPER_RESULTS = Path(__file__).resolve().parents[2] / "shared" / "paper_results.
 SERVER_RATE_MBIT = 2500.0  # the paper's link between its two servers
 MIN_INVOCATIONS = 20  # a SIL localization's privacy floor (snail-client's default)
 LATENCY_DELAYS_MS = (0.0, 5.0, 20.0, 50.0)
+PROFILE_REPEAT = 3  # localizations per network profile and n, after one to warm up
 MICRO_OPS = 10_000  # the paper's micro-benchmark size
 
 
@@ -62,6 +63,7 @@ class Plan:
     algorithms: tuple[str, ...]
     repeat: int
     micro_lanes: int  # operations per garbled micro-benchmark circuit
+    profile_points: tuple[int, ...] = (6, 12, 64)  # a localization per network profile
 
     def expected_minutes(self) -> float:
         """A rough forecast on 2 cores with a cold circuit cache: a DO circuit compiles in
@@ -75,11 +77,13 @@ class Plan:
         run_s = runs * (0.15 + 0.005 * mean_n)
         do_s = len(self.do_points) * 140
         latency_s = 7 * 12
-        return round((sil_s + run_s + do_s + latency_s) / 60 + 1, 1)
+        # per profile: a lab, links measured, and per n 1 + PROFILE_REPEAT localizations
+        profiles_s = 4 * (15 + len(self.profile_points) * (1 + PROFILE_REPEAT) * 8)
+        return round((sil_s + run_s + do_s + latency_s + profiles_s) / 60 + 1, 1)
 
 
 QUICK = Plan(totals_points=(6, 12), do_points=(), sweep_points=(6, 56), algorithms=("lm",),
-             repeat=3, micro_lanes=500)
+             repeat=3, micro_lanes=500, profile_points=(6, 12))
 FULL = Plan(totals_points=tuple(range(6, 13)), do_points=tuple(range(6, 13)),
             sweep_points=(6, 56, 106, 156, 206, 256), algorithms=("lm", "gn"), repeat=5,
             micro_lanes=1000)
@@ -120,6 +124,8 @@ def measure_all(plan: Plan, tick: Callable[[str], object] = lambda _: None) -> d
     tick("sweep")
     results["latency"] = latency_sweep(plan.repeat)
     tick("latency")
+    results["profiles"] = profiles(plan.profile_points)
+    tick("profiles")
     results["finished"] = time.strftime("%Y-%m-%d %H:%M:%S")
     return results
 
@@ -220,6 +226,29 @@ def latency_sweep(repeat: int) -> dict:
     return out
 
 
+def profiles(points: tuple[int, ...]) -> dict:
+    """A padded LM localization at each of ``points`` under each network profile
+    (``snail-bench netem --profile NAME --localize``): its wall time against the bound
+    its links set. ``{profile: {"links", "shaper", "forwarder", "localization": {n:
+    {...}}}}``, or ``{"lab": "unavailable: ..."}`` without the network lab."""
+    from .netem import Phase, run_phases
+    from .netlab.namespaces import LabUnavailable
+    from .netlab.profiles import PROFILES, profile_shapes
+
+    specs = [sil_spec("lm", n) for n in points]
+    out: dict = {"points": list(points), "repeat": PROFILE_REPEAT}
+    try:
+        for name in PROFILES:
+            _, shaper, rows = run_phases(specs, 1, [Phase(name, profile_shapes(name))],
+                                         localize=PROFILE_REPEAT)
+            row = rows[name]
+            out[name] = {"links": row["links"], **shaper, "localization": {
+                str(spec.points): row["localization"][spec.circuit_id] for spec in specs}}
+    except LabUnavailable as exc:
+        return {"lab": f"unavailable: {exc}"}
+    return out
+
+
 class _CountingMirror(MirrorBackend):
     """The float32 mirror, counting each operation once per element it computes."""
 
@@ -315,7 +344,7 @@ def write_paper(out: Path, plan: Plan, paper: dict, quiet: bool = True) -> Path:
 
     paper_plot._pyplot()  # ImportError now, not after the measurements
     out.mkdir(parents=True, exist_ok=True)
-    with bar(7, "paper", quiet, "step") as progress:
+    with bar(8, "paper", quiet, "step") as progress:
         def tick(name: str) -> None:
             progress.set_postfix_str(name)
             progress.update(1)

@@ -69,7 +69,8 @@ def write_figures(results: dict, paper: dict, out: Path) -> list[str]:
     plt = _pyplot()
     sections = [_sil_vs_do(plt, results, paper, out), _per_iteration(plt, results, paper, out),
                 _bytes(plt, results, paper, out), _ops(plt, results, paper, out),
-                _micro(plt, results, paper, out), _latency(plt, results, out)]
+                _micro(plt, results, paper, out), _latency(plt, results, out),
+                _profiles(plt, results, out)]
     return [s for s in sections if s]
 
 
@@ -247,3 +248,47 @@ def _latency(plt, results: dict, out: Path) -> str:
             + _table(["delayed link", "round trips (wall)", "round trips (beyond evaluation)",
                       "s/iteration at " + " / ".join(f"{d:g}" for d in delays) + " ms"],
                      rows))
+
+
+PROFILE_MARKERS = {"lan": ("o", "C0"), "paper": ("s", "C1"), "region": ("^", "C2"),
+                   "continent": ("D", "C3")}
+
+
+def _profiles(plt, results: dict, out: Path) -> str:
+    """Wall time of a padded localization per network profile against its links' bound
+    (``snail-bench netem --profile NAME --localize``)."""
+    prof = results.get("profiles", {})
+    names = [name for name in PROFILE_MARKERS if name in prof]
+    if not names:
+        return f"## Network profiles\n\nNot measured: {prof.get('lab', 'no lab')}"
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    rows, edges = [], []
+    for name in names:
+        marker, color = PROFILE_MARKERS[name]
+        locs = sorted(prof[name]["localization"].items(), key=lambda kv: int(kv[0]))
+        bounds = [loc["link_bound_s"] for _, loc in locs]
+        walls = [loc["wall_s"] for _, loc in locs]
+        edges += bounds + walls
+        ax.plot(bounds, walls, linestyle="none", marker=marker, color=color,
+                markerfacecolor="none", markersize=9, markeredgewidth=1.5, label=name)
+        for (n, loc), x, y in zip(locs, bounds, walls):
+            ax.annotate(f"n={n}", (x, y), textcoords="offset points", xytext=(6, 4),
+                        fontsize=7, color=color)
+            rows.append([name, n, str(loc["invocations"]),
+                         f"{loc['bytes']['garbler_to_evaluator'] / 1e6:.1f}",
+                         f"{loc['link_bound_s']:.3f}", f"{loc['wall_s']:.3f}",
+                         f"{loc['bound_ratio']:.2f}"])
+    lo, hi = min(edges) / 1.5, max(edges) * 1.5
+    ax.plot([lo, hi], [lo, hi], color="0.4", linewidth=1, label="the links' bound")
+    ax.plot([lo, hi], [1.3 * lo, 1.3 * hi], color="0.4", linewidth=1, linestyle="--",
+            label="1.3 x the bound")
+    ax.set(xscale="log", yscale="log", xlabel="bound set by the links alone (s, log)",
+           ylabel="padded localization, wall (s, log)",
+           title="One localization (20 invocations, LM) per network profile")
+    ax.legend(fontsize=8)
+    _save(plt, fig, out, "profiles.png")
+    return ("## Network profiles: a localization against its links' bound\n\n"
+            "![](profiles.png)\n\nThe bound is max(garbler -> evaluator bytes / the "
+            "measured server rate, invocations x the measured client round trip).\n\n"
+            + _table(["profile", "n", "invocations", "MB garbler->evaluator", "bound (s)",
+                      "wall (s)", "wall / bound"], rows))

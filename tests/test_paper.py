@@ -113,3 +113,19 @@ def test_every_series_is_drawn_in_a_style_of_its_own(tmp_path, monkeypatch):
                     coinciding += 1
                     assert a[2:] != b[2:], (name, a[2:])
     assert coinciding >= 3  # ours LM and GN at 0 and 5 ms, bytes per iteration
+
+
+def test_the_profiles_figure_sets_each_localization_against_its_bound(tmp_path):
+    pytest.importorskip("matplotlib", reason="the bench extra (matplotlib) is not installed")
+    from snail_bench import paper_plot
+
+    def loc(wall: float, bound: float) -> dict:
+        return {"wall_s": wall, "link_bound_s": bound, "bound_ratio": round(wall / bound, 3),
+                "invocations": 20, "bytes": {"garbler_to_evaluator": 112_500_000}}
+
+    results = _results()
+    results["profiles"] = {"points": [6, 12], "region": {"localization": {
+        "6": loc(1.1, 0.9), "12": loc(1.5, 1.2)}}}
+    text = "\n".join(paper_plot.write_figures(results, load_paper(PAPER_RESULTS), tmp_path))
+    assert (tmp_path / "profiles.png").read_bytes()[:4] == b"\x89PNG"
+    assert "| region | 6 | 20 | 112.5 | 0.900 | 1.100 | 1.22 |" in text
