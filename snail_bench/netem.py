@@ -26,6 +26,7 @@ from snail_common.pnp.sil import CLIENT
 from snail_common.pnp.spec import Spec
 
 from .linkbound import bounded
+from .netlab.hosts import bdp_buffer, tcp_settings, tune_tcp
 from .netlab.namespaces import LINKS, Lab, LabError, Shape
 from .netlab.services import LabServices, lab_services
 
@@ -90,8 +91,11 @@ def run_phases(specs: list[Spec], repeat: int, phases: list[Phase | tuple],
     phases = [p if isinstance(p, Phase) else Phase(*p) for p in phases]
     forwarders: set[str] = set()
     with tempfile.TemporaryDirectory(prefix="snail-netem-") as tmp, Lab(shaper) as lab:
-        lab.tune_tcp(congestion, slow_start_after_idle)  # before any daemon connects
-        tcp = lab.tcp_settings()
+        # before any daemon connects; buffers for the largest bandwidth-delay product
+        # of any phase, as an operator sizes them for the links the servers have
+        buffers = max(bdp_buffer(dict(phase.shapes)) for phase in phases) or None
+        tune_tcp(lab, congestion, slow_start_after_idle, buffers)
+        tcp = tcp_settings(lab)
         steps = len(LINKS) + 1 + (1 if localize else 0)
         with lab_services(lab, Path(tmp)) as services, \
                 bar(len(phases) * steps, "netem", quiet, "step") as progress:

@@ -58,6 +58,7 @@ from snail_common.net.linkrates import LinkRates
 from snail_common.net.logs import event
 from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
+from snail_common.net.tcpinfo import link_advice
 from snail_common.net.tcpinfo import read as tcp_info
 
 from .lanes import LaneBatcher, LaneView
@@ -109,6 +110,7 @@ class GarblerDaemon(Daemon):
         self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout,
                                   map_owners)
         self.rates = LinkRates()  # garbling rates and the server link, measured
+        self.advised = False  # tcp_advice logged
 
     async def serve(self, conn: Connection) -> None:
         """A client's requests. Its sessions end with the connection, once ``serving``
@@ -189,6 +191,7 @@ class GarblerDaemon(Daemon):
                 lanes = getattr(garbler, "lanes", 1)
                 self.rates.garbled(scheme, schedule.n_and, timeline.pop("cpu_s") / lanes)
                 self.rates.streamed(tcp_info(evaluator.transport.get_extra_info("socket")))
+                self._advise()
                 timeline["request"] = t_wall
                 record["timeline"] = timeline
                 replied = self._reply(client, sid, garbler, sent, {
@@ -232,6 +235,15 @@ class GarblerDaemon(Daemon):
             record["bytes_out"] += sent
             record["seconds"] = time.monotonic() - t0
             self.finish(peer, record)
+
+    def _advise(self) -> None:
+        """Once the link is measured: log what this host's TCP settings cost the table
+        stream (tcpinfo.link_advice), once per daemon."""
+        if self.advised or self.rates.link_rate is None or self.rates.rtt_s is None:
+            return
+        self.advised = True
+        for advice in link_advice(self.rates.link_rate, self.rates.rtt_s):
+            event(self.log, "tcp_advice", logging.WARNING, advice=advice)
 
     def _reply(self, client: Connection, sid: bytes, garbler: Garbler | LaneView, sent: int,
                timing: dict[str, float], owner: dict[str, int]) -> int:

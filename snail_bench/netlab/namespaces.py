@@ -317,40 +317,6 @@ class Lab:
         user, system = fields.split()[11:13]
         return (int(user) + int(system)) / os.sysconf("SC_CLK_TCK")
 
-    def tune_tcp(self, congestion: str | None = None,
-                 slow_start_after_idle: bool | None = None) -> None:
-        """TCP as the hosts would be tuned, inside the lab only: ``congestion`` control on
-        every lab route (``ip route ... congctl``), ``net.ipv4.tcp_slow_start_after_idle``
-        in every role's namespace; None keeps the kernel's default."""
-        for role in ROLES:
-            ns = self.ns[role]
-            if slow_start_after_idle is not None:
-                _run("ip", "netns", "exec", ns, "sysctl", "-q", "-w",
-                     f"net.ipv4.tcp_slow_start_after_idle={int(slow_start_after_idle)}")
-            if congestion is None:
-                continue
-            for link, pair in LINKS.items():
-                if role not in pair:
-                    continue
-                peer = pair[1 - pair.index(role)]
-                prefix = self.address(link, role).rsplit(".", 1)[0] + ".0/24"
-                _run("ip", "-n", ns, "route", "replace", prefix, "dev",
-                     self.ifname(role, peer), "proto", "kernel", "scope", "link",
-                     "src", self.address(link, role), "congctl", congestion)
-
-    def tcp_settings(self) -> dict[str, object]:
-        """The client's congestion control and slow-start-after-idle, as TCP will use
-        them on the lab's links (measured, not what was asked for)."""
-        ns = self.ns["client"]
-        route = _run("ip", "-n", ns, "route", "show", "dev", self.ifname("client", "evaluator"))
-        congctl = re.search(r"congctl (\S+)", route)
-        default = _run("ip", "netns", "exec", ns, "sysctl", "-n",
-                       "net.ipv4.tcp_congestion_control").strip()
-        idle = _run("ip", "netns", "exec", ns, "sysctl", "-n",
-                    "net.ipv4.tcp_slow_start_after_idle").strip()
-        return {"congestion_control": congctl.group(1) if congctl else default,
-                "slow_start_after_idle": idle == "1"}
-
     def qdiscs(self, role: str) -> str:
         """``tc qdisc show`` inside ``role``'s namespace."""
         return _run("tc", "-n", self.ns[role], "qdisc", "show")

@@ -71,3 +71,32 @@ def parse(raw: bytes) -> TcpInfo | None:
                    busy_s=seconds("busy_us"), rwnd_limited_s=seconds("rwnd_limited_us"),
                    sndbuf_limited_s=seconds("sndbuf_limited_us"),
                    bytes_sent=values["bytes_sent"], total_retrans=values["total_retrans"] or 0)
+
+
+def host_setting(name: str) -> list[int] | None:
+    """A ``net.ipv4`` sysctl of this host's network namespace as integers (None where
+    /proc/sys does not have it): e.g. ``tcp_wmem`` (min, default, max bytes)."""
+    try:
+        return [int(x) for x in open(f"/proc/sys/net/ipv4/{name}").read().split()]
+    except (OSError, ValueError):
+        return None
+
+
+def link_advice(link_rate: float | None, rtt_s: float | None) -> list[str]:
+    """What this host's TCP settings cost a stream over a link of ``link_rate`` bytes/s
+    and ``rtt_s`` round trips (the garbler logs it once): a send buffer under twice the
+    bandwidth-delay product cannot fill the link, and a stream idle between sessions for
+    longer than its retransmission timeout starts from a small window again."""
+    advice: list[str] = []
+    if not rtt_s or rtt_s < 0.001:  # one host or one rack: nothing here costs much
+        return advice
+    wmem = host_setting("tcp_wmem")
+    if link_rate and rtt_s and wmem and wmem[2] < 2 * link_rate * rtt_s:
+        advice.append(f"net.ipv4.tcp_wmem allows {wmem[2] / 1e6:.1f} MB of send buffer, "
+                      f"under twice the link's bandwidth-delay product "
+                      f"({2 * link_rate * rtt_s / 1e6:.1f} MB): raise its third value")
+    idle = host_setting("tcp_slow_start_after_idle")
+    if idle and idle[0] == 1:
+        advice.append("net.ipv4.tcp_slow_start_after_idle=1: a table stream idle between "
+                      "sessions restarts from a small window; set it to 0 on the servers")
+    return advice
