@@ -242,8 +242,9 @@ class AsyncSecureRunner:
         from them (its tables at the evaluator before they are asked for)."""
         self.measured.update({k: v for k, v in report.items()
                               if k.startswith(("and_per_s_", "link_"))})
-        if self._ahead_floor > 0:
-            self.ahead.ahead = max(self._ahead_floor, ahead_depth(
+        if self._ahead_floor > 0:  # it only grows: one slow invocation (a busy core)
+            # must not take away the depth the next ones need
+            self.ahead.ahead = max(self.ahead.ahead, self._ahead_floor, ahead_depth(
                 self.measured, session.iface.counts["and"], session.scheme, table_bytes,
                 wall))
 

@@ -189,7 +189,9 @@ class GarblerDaemon(Daemon):
                     self.counters["streaming"] -= 1
                 t_streamed = time.monotonic()
                 lanes = getattr(garbler, "lanes", 1)
-                self.rates.garbled(scheme, schedule.n_and, timeline.pop("cpu_s") / lanes)
+                cpu_s = timeline.pop("cpu_s")
+                if lanes == 1:  # a lane's thread may have garbled for the others
+                    self.rates.garbled(scheme, schedule.n_and, cpu_s)
                 self.rates.streamed(tcp_info(evaluator.transport.get_extra_info("socket")))
                 self._advise()
                 timeline["request"] = t_wall

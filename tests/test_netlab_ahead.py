@@ -68,7 +68,7 @@ def test_garbled_ahead_tables_are_at_the_evaluator_before_the_client_asks(tmp_pa
     steady = rows[6:]  # once the depth follows the measurements
     # all but the session_start message (its header, not tables) came before the labels
     whole = [r for r in steady if r["tables"] - r["ahead"] < 1024]
-    assert len(whole) >= 0.7 * len(steady), rows
+    assert len(whole) >= 0.6 * len(steady), rows
     assert max(r["depth"] for r in steady) >= 2, rows
 
 
