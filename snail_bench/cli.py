@@ -14,7 +14,12 @@ from snail_client.verbosity import VerbosityGroup
 from snail_common import families
 from snail_common.circuit import evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import BristolError, load_bristol
-from snail_common.gc.stream import DEFAULT_SCHEME, SCHEMES
+from snail_common.gc.stream import SCHEMES
+from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
+
+from .choices import SERVICE_POINTS
+from .choices import spec as _spec
+from .netcmd import netem, paper
 
 
 def _parse_int(text: str) -> int:
@@ -35,9 +40,9 @@ def _emit(report: dict, as_json: bool) -> None:
         click.echo(f"{key:>24}: {value}")
 
 
-
-SERVICE_POINTS = (6, 12)  # what `service` measures unless --points says otherwise
 ACCURACY_TARGETS = {"lm": 0.999, "gn": 0.99}  # pass rates `accuracy` holds the loop to
+
+
 
 @click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="snail", prog_name="snail-bench")
@@ -49,6 +54,10 @@ def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
     """Benchmarks and gate counts of snail's circuits and engines."""
     families.register_all()
     ctx.obj = {"verbose": verbose, "quiet": quiet}
+
+
+main.add_command(netem)  # the network lab and the paper's figures: netcmd.py
+main.add_command(paper)
 
 
 # --arith of circuit, service and accuracy
@@ -198,10 +207,11 @@ def engine(schemes: tuple[str, ...], as_json: bool) -> None:
 @click.option("--lane-window-ms", type=click.FloatRange(0, 1000), default=None,
               help="Embedded daemons only: their --lane-window-ms (batch concurrent "
                    "sessions into lanes; 0: off; default: the daemons' own).")
-@click.option("--scheme", type=click.Choice(list(SCHEMES)),
-              default=DEFAULT_SCHEME, show_default=True,
+@click.option("--scheme", type=click.Choice(list(CLIENT_SCHEMES)),
+              default=AUTO, show_default=True,
               help="Garbling scheme of every session: three-halves sends 0.77x the table "
-                   "bytes but garbles slower, and is never batched into lanes.")
+                   "bytes but garbles slower, and is never batched into lanes; auto picks "
+                   "per session from the garbler's measured rates (the client's default).")
 @click.option("--map-points", "map_points", type=click.IntRange(4, 1_000_000), multiple=True,
               metavar="M", help="The map-owner setting's extra cost: for each --points n "
               "and each M (repeat for several), a snail-mapd on loopback holds a random "
@@ -498,153 +508,6 @@ def fuzz_cmd(targets: tuple[str, ...], runs: int, seconds: int, corpus: Path | N
         click.echo(json.dumps({"fuzz": report}))
     if not all(row["ok"] for row in report.values()):
         sys.exit(1)
-
-
-def _spec(algorithm: str, mode: str, solve: str | None, solver: str, points: int,
-          arith: str | None = None):
-    """The circuit the client would run with these choices (pipeline.Options decides)."""
-    from snail_common.loc.pipeline import Options
-
-    return Options(algorithm=algorithm, mode=mode, solver=solver, solve=solve,
-                   arith=arith).spec(points)
-
-
-@main.command()
-@click.option("--server-delay-ms", type=click.FloatRange(0, 10_000), default=0.0,
-              show_default=True, help="One-way delay on the garbler-evaluator link.")
-@click.option("--server-rate-mbit", type=click.FloatRange(min=0.1), default=None,
-              help="Rate of the garbler-evaluator link, each way (default: unlimited).")
-@click.option("--client-delay-ms", type=click.FloatRange(0, 10_000), default=0.0,
-              show_default=True, help="One-way delay on both of the client's links.")
-@click.option("--client-rate-mbit", type=click.FloatRange(min=0.1), default=None,
-              help="Rate of each of the client's links, each way (default: unlimited).")
-@click.option("--jitter-ms", type=click.FloatRange(0, 10_000), default=0.0,
-              show_default=True, help="Uniform +- jitter on every delayed link (at most "
-                                      "its delay; packets keep their order).")
-@click.option("--loss-pct", type=click.FloatRange(0, 99), default=0.0, show_default=True,
-              help="Packet loss on the client's links (its WiFi), each way.")
-@click.option("--server-loss-pct", type=click.FloatRange(0, 99), default=0.0,
-              show_default=True, help="Packet loss on the garbler-evaluator link.")
-@click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm", show_default=True,
-              help="Levenberg-Marquardt (damped) or Gauss-Newton.")
-@click.option("--points", type=click.IntRange(4, 4096), multiple=True, metavar="N",
-              help="Circuit size; repeat for several (default: 6 and 12).")
-@click.option("--repeat", type=click.IntRange(1, 1000), default=5, show_default=True,
-              help="Warm runs per circuit and shaping, after one first run.")
-@click.option("--baseline/--no-baseline", default=True, show_default=True,
-              help="Run the same lab unshaped first and report it under 'unshaped'.")
-@click.option("--measure-seconds", type=click.FloatRange(0.1, 60), default=1.0,
-              show_default=True, help="Length of each link's throughput blast.")
-@click.option("--congestion-control", metavar="NAME", default=None,
-              help="TCP congestion control on the lab's links (e.g. cubic, reno, bbr; "
-                   "default: the kernel's).")
-@click.option("--slow-start-after-idle/--no-slow-start-after-idle", default=None,
-              help="The hosts' net.ipv4.tcp_slow_start_after_idle inside the lab "
-                   "(default: the kernel's, on).")
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def netem(server_delay_ms: float, server_rate_mbit: float | None, client_delay_ms: float,
-          client_rate_mbit: float | None, jitter_ms: float, loss_pct: float,
-          server_loss_pct: float, algorithm: str, points: tuple[int, ...], repeat: int,
-          baseline: bool, measure_seconds: float, congestion_control: str | None,
-          slow_start_after_idle: bool | None, as_json: bool) -> None:
-    """`service` over shaped links: the client, garbler and evaluator as three hosts in
-    network namespaces (needs root), each link with its own rate, delay, jitter and loss;
-    every link's RTT and rate are measured before each run. Delays are one way."""
-    from .netem import netem_report
-    from .netlab.namespaces import LabError, LabUnavailable, Shape
-
-    def jitter(delay: float) -> float:
-        return jitter_ms if delay else 0.0
-
-    try:
-        server = Shape(server_delay_ms, jitter(server_delay_ms), server_loss_pct,
-                       server_rate_mbit)
-        client = Shape(client_delay_ms, jitter(client_delay_ms), loss_pct, client_rate_mbit)
-        specs = [_spec(algorithm, "sil", None, "ldlt", n) for n in points or SERVICE_POINTS]
-    except ValueError as e:
-        raise click.UsageError(str(e)) from None
-    flags = click.get_current_context().find_object(dict) or {}
-
-    def done(phase: str, row: dict) -> None:
-        if flags.get("verbose"):
-            medians = ", ".join(f"{k} {v['median_s']:.3f} s" for k, v in row["service"].items())
-            click.echo(f"snail-bench: {phase}: {medians}", err=True)
-
-    shapes = {"garbler_evaluator": server, "client_garbler": client, "client_evaluator": client}
-    try:
-        report = netem_report(specs, repeat, shapes, baseline, measure_seconds,
-                              congestion_control, slow_start_after_idle,
-                              flags.get("quiet", False), done)
-    except LabUnavailable as e:
-        click.echo(f"snail-bench: {e}", err=True)
-        sys.exit(2)
-    except LabError as e:
-        click.echo(f"snail-bench: {e}", err=True)
-        sys.exit(1)
-    except KeyboardInterrupt:  # the lab is gone by now: its `with` unwound
-        click.echo("snail-bench: interrupted", err=True)
-        sys.exit(130)
-    if as_json:
-        click.echo(json.dumps(report))
-        return
-    body = report["netem"]
-    click.echo(f"tcp: {body['tcp']['congestion_control']}, slow start after idle "
-               f"{'on' if body['tcp']['slow_start_after_idle'] else 'off'}")
-    for phase in ("unshaped", None):
-        row = body.get(phase) if phase else body
-        if row is None:
-            continue
-        click.echo(phase or "shaped")
-        for link, m in row["links"].items():
-            click.echo(f"  {link:>18}: rtt {m['rtt_ms']:.2f} ms  rate {m['rate_mbit']:.0f} Mbit/s")
-        for name, r in row["service"].items():
-            click.echo(f"  {name:>18}: median {r['median_s']:.3f} s (min {r['min_s']:.3f}, "
-                       f"max {r['max_s']:.3f}), beyond evaluation "
-                       f"{r['median_beyond_evaluate_s'] * 1000:.0f} ms")
-
-
-@main.command()
-@click.option("--out", required=True, type=click.Path(file_okay=False),
-              help="Directory for results.json, one PNG per figure and report.md.")
-@click.option("--quick", is_flag=True,
-              help="A subset for under 10 minutes: LM only, n = 6, 12 for totals and 6, 56 "
-                   "per iteration, no DO.")
-@click.option("--paper-results", type=click.Path(dir_okay=False), default=None,
-              help="The paper's numbers (default: ../shared/paper_results.json).")
-def paper(out: str, quick: bool, paper_results: str | None) -> None:
-    """The paper's evaluation on this machine: SIL vs DO, seconds and bytes per iteration
-    vs n at 0 and 5 ms between the servers (network lab, needs root), float32 operations
-    per iteration, float vs integer ops, and a latency sweep; each figure with the paper's
-    series beside ours. Needs the `bench` extra (matplotlib)."""
-    from pathlib import Path
-
-    from .paper import FULL, PAPER_RESULTS, QUICK, load_paper, write_paper
-
-    plan = QUICK if quick else FULL
-    flags = click.get_current_context().find_object(dict) or {}
-    try:
-        numbers = load_paper(Path(paper_results) if paper_results else PAPER_RESULTS)
-    except ValueError as e:
-        raise click.UsageError(f"--paper-results: {e}") from None
-    click.echo(f"snail-bench: the {'quick' if quick else 'full'} plan takes about "
-               f"{plan.expected_minutes():g} minutes on 2 idle cores with a cold circuit "
-               f"cache (twice that with other work on them).", err=True)
-    from snail_client.links import ServiceError
-
-    from .netlab.namespaces import LabError
-
-    try:
-        report = write_paper(Path(out), plan, numbers, flags.get("quiet", False))
-    except ImportError as e:
-        click.echo(f"snail-bench: {e}", err=True)
-        sys.exit(2)
-    except (ServiceError, LabError, RuntimeError) as e:
-        click.echo(f"snail-bench: {e}", err=True)
-        sys.exit(1)
-    except KeyboardInterrupt:
-        click.echo("snail-bench: interrupted", err=True)
-        sys.exit(130)
-    click.echo(str(report))
 
 
 if __name__ == "__main__":

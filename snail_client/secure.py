@@ -52,7 +52,6 @@ from snail_common.gc import (
     fresh_delta,
     labels_to_bytes,
 )
-from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net import messages, tls
 from snail_common.net.chunks import runs, write_labels
 from snail_common.net.conn import connect, format_addr
@@ -64,6 +63,7 @@ from snail_common.net.errors import (
     ProtocolError,
     RemoteError,
 )
+from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES, ahead_depth, pick_scheme
 from snail_common.pnp.spec import owner_bits
 
 from .ahead import AheadPool
@@ -94,7 +94,7 @@ class AsyncSecureRunner:
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
                  link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 scheme: str = DEFAULT_SCHEME) -> None:
+                 scheme: str = AUTO) -> None:
         families.register_all()
         # each a NAME:PORT that may stand for several replicas (replicas.py)
         self.garbler_addr = parse_address(garbler_addr, "garbler address")
@@ -105,10 +105,14 @@ class AsyncSecureRunner:
         self.connect_timeout = connect_timeout
         self.busy_wait = busy_wait
         self.link_timeout = link_timeout
-        if scheme not in messages.SCHEMES:
-            raise ValueError(f"scheme must be one of {', '.join(messages.SCHEMES)}, "
+        if scheme not in CLIENT_SCHEMES:
+            raise ValueError(f"scheme must be one of {', '.join(CLIENT_SCHEMES)}, "
                              f"got {scheme!r}")
-        self.scheme = scheme  # the garbling scheme of every session this runner asks for
+        # the garbling scheme of every session this runner asks for; auto: per session,
+        # from what the garbler measured (linkrates.pick_scheme)
+        self.scheme = scheme
+        self.measured: dict[str, float] = {}  # the garbler's last rates (its stats)
+        self._ahead_floor = ahead
         self.last: Invocation | None = None
         self.totals = dict.fromkeys(LINKS, 0)
         self.invocations = 0
@@ -239,11 +243,30 @@ class AsyncSecureRunner:
         timing = {f"garbler_{k}": v for k, v in g_stats["timing"].items()}
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
         ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
-        self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e)
+        self._measured(g_stats["timing"], session, traffic["garbler_to_evaluator"], wall)
+        timing["client_ahead"] = float(self.ahead.ahead)  # the depth it sized from them
+        self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e, session.scheme)
         self.invocations += 1
         for k, v in traffic.items():
             self.totals[k] = self.totals.get(k, 0) + v
         return self.last
+
+    def _measured(self, report: dict[str, float], session: Prepared, table_bytes: int,
+                  wall: float) -> None:
+        """Take the garbler's rates from a session's stats; size the garble-ahead depth
+        from them (its tables at the evaluator before they are asked for)."""
+        self.measured.update({k: v for k, v in report.items()
+                              if k.startswith(("and_per_s_", "link_"))})
+        if self._ahead_floor > 0:  # it only grows: one slow invocation (a busy core)
+            # must not take away the depth the next ones need
+            self.ahead.ahead = max(self.ahead.ahead, self._ahead_floor, ahead_depth(
+                self.measured, session.iface.counts["and"], session.scheme, table_bytes,
+                wall))
+
+    def session_scheme(self) -> str:
+        """The scheme of the next session: the runner's, or with ``auto`` the one the
+        garbler's last measurements favour."""
+        return pick_scheme(self.measured) if self.scheme == AUTO else self.scheme
 
     async def _prepare(self, circuit_id: str, fixed: bool = True) -> Prepared:
         """Ask for a session's garbling now, with fresh secrets (and, ``fixed``, send the
@@ -289,19 +312,20 @@ class AsyncSecureRunner:
             todo[FIRST_INPUT:] = ~fixed.mask[:iface.n_inputs - n_owner]
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
+        scheme = self.session_scheme()
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
         chash = iface.content_hash
         try:
             sent_e = evaluator.conn.write(messages.make(
                 "session_start", sid=sid, circuit=circuit_id, hash=chash,
-                scheme=self.scheme))
+                scheme=scheme))
             if fixed is not None:
                 labels = active_input_labels(seed, delta, fixed.bits)
                 sent_e += sum(write_labels(evaluator.conn, "input_labels", sid, labels[a:b],
                                            a, todo.size) for a, b in runs(~todo))
             sent_g = garbler.conn.write(messages.make(
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
-                delta=labels_to_bytes(delta), key=key, scheme=self.scheme, **owner,
+                delta=labels_to_bytes(delta), key=key, scheme=scheme, **owner,
                 **_replica(evaluator)))
             await asyncio.gather(evaluator.conn.drain(), garbler.conn.drain())
         except ConnectionClosed:
@@ -309,7 +333,7 @@ class AsyncSecureRunner:
             evaluator.cancel(sid)
             raise
         return Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
-                         sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo)
+                         sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo, scheme)
 
     async def _collect(self, session: Prepared) -> list[tuple[np.ndarray, int, dict]]:
         """Both servers' label vectors and stats; the first failure cancels the other."""
