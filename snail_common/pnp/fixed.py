@@ -167,9 +167,42 @@ class FixMirror:
         mag = self.mul_cut(_unsigned(x), _unsigned(y), drop, cut, width).v
         return SM(x.s ^ y.s, np.maximum(mag, 0), width)
 
+    def constant_tc(self, value: int, width: int) -> TC:
+        return TC(np.int64(value), width)
+
+    def exponent_neg(self, y, k: int):
+        """k - y for an exponent y: what scale2 adds."""
+        return np.int64(k) - np.int64(y)
+
+    def exponent_add(self, x, y, times: int = 1):
+        """x + times y for exponents (y a shift amount: normalize_columns; x None: 0)."""
+        return (0 if x is None else np.int64(x)) + times * np.asarray(y, np.int64)
+
+    def normalize_columns(self, x: SM) -> tuple[SM, np.ndarray]:
+        """Each column (last axis) of magnitudes shifted left by its leading zeros over
+        all its entries (``x.w`` for a zero column), so its largest fills the word: the
+        column's block exponent. Returns the shifted magnitudes and the shifts (columns,)."""
+        m = np.asarray(x.m, np.int64)
+        top = np.bitwise_or.reduce(m.reshape(-1, m.shape[-1]), axis=0)
+        lz = np.array([x.w - int(v).bit_length() for v in top], np.int64)
+        return SM(x.s, (m << lz) & ((1 << x.w) - 1), x.w), lz
+
+    def nonzero(self, x) -> TC:
+        """1 where the integer word (an input) is not zero, as 2-bit TC."""
+        return TC((np.asarray(x, np.int64) != 0).astype(np.int64), 2)
+
+    def sm_from_tc(self, x: TC, k: int, width: int) -> SM:
+        """floor(x / 2^k) as sign and ``width``-bit magnitude (the caller bounds it)."""
+        v = np.asarray(x.v, np.int64) >> k
+        return SM((v < 0).astype(np.int64), np.abs(v), width)
+
     def add_shl(self, x: SM, y: SM, k: int, width: int) -> SM:
         """|x| + (|y| << k), x's sign kept (for magnitudes that add: y non-negative)."""
         return SM(x.s, (x.m + (y.m << k)) & ((1 << width) - 1), width)
+
+    def shr_tc(self, x: TC, k: int) -> TC:
+        """floor(x / 2^k), k bits narrower."""
+        return TC(np.asarray(x.v, np.int64) >> k, x.w - k)
 
     def shr(self, x: SM, k: int) -> SM:
         """|x| >> k, k bits narrower: a truncation that costs no gates."""
@@ -367,6 +400,46 @@ class FixCircuit:
         v = self.mul_cut(SM(zero[0], x.m, x.w), SM(zero[1], y.m, y.w), drop, cut, width).v
         mag = self.b.and_(v[..., :width], self.b.not_(v[..., width])[..., None])
         return SM(self.b.xor(x.s, y.s), mag, width)
+
+    def constant_tc(self, value: int, width: int) -> TC:
+        return TC(const(value, width), width)
+
+    def exponent_neg(self, y, k: int):
+        """k - y modulo 256 for an 8-bit exponent word y."""
+        return integer.sub(self.b, const(k % 256, 8), y)
+
+    def exponent_add(self, x, y, times: int = 1):
+        """x + times y modulo 256 (times a power of two: a free shift of y; x None: 0)."""
+        y = shift.shl_const(zext(np.asarray(y), 8), times.bit_length() - 1, 8)
+        return y if x is None else integer.add(self.b, np.broadcast_to(x, y.shape), y)
+
+    def normalize_columns(self, x: SM) -> tuple[SM, np.ndarray]:
+        """An OR tree over each column's entries, its leading zeros (shift.lzc) and one
+        left shift per entry (shift.shl): about 5 AND per magnitude bit."""
+        b = self.b
+        m = np.asarray(x.m)
+        cols = m.reshape(-1, *m.shape[-2:])             # (entries, columns, bits)
+        while cols.shape[0] > 1:
+            half = cols.shape[0] // 2
+            pair = b.or_(cols[:half], cols[half:2 * half])
+            cols = np.concatenate([pair, cols[2 * half:]], axis=0)
+        lz = shift.lzc(b, cols[0])                      # (columns, bits of x.w)
+        stages = (x.w - 1).bit_length()                 # x.w itself: a zero column
+        return SM(x.s, shift.shl(b, m, lz[..., :stages]), x.w), zext(lz, 8)
+
+    def nonzero(self, x) -> TC:
+        """OR of each word's bits, a zero sign bit above it."""
+        bit = or_all(self.b, np.asarray(x))
+        return TC(np.stack([bit, np.full(bit.shape, ZERO, np.int32)], -1), 2)
+
+    def shr_tc(self, x: TC, k: int) -> TC:
+        """floor(x / 2^k): the low bits leave."""
+        return TC(np.asarray(x.v)[..., k:], x.w - k)
+
+    def sm_from_tc(self, x: TC, k: int, width: int) -> SM:
+        """The low bits leave (a floor), the rest is negated under its sign bit."""
+        v = np.asarray(x.v)[..., k:]
+        return SM(v[..., -1], integer.cond_negate(self.b, v, v[..., -1])[..., :width], width)
 
     def add_shl(self, x: SM, y: SM, k: int, width: int) -> SM:
         xm, ym = broadcast_lead(zext(x.m, width), shift.shl_const(y.m, k, width))
