@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from snail_client.verbosity import VerbosityGroup
 from snail_common import families
 from snail_common.circuit import evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import BristolError, load_bristol
@@ -41,7 +42,7 @@ ACCURACY_TARGETS = {"lm": 0.999, "gn": 0.99}  # pass rates `accuracy` holds the 
 HARD_TARGETS = {("lm", "client"): 1.0, ("lm", "circuit"): 1.0, ("gn", "client"): 0.995,
                 ("gn", "circuit"): 0.99}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="snail", prog_name="snail-bench")
 @click.option("-v", "--verbose", is_flag=True, help="Report each measurement on stderr "
                                                     "as it finishes.")
@@ -257,7 +258,7 @@ def _print_service(measure: Callable[[], dict], as_json: bool,
                    show: Callable[[dict], None]) -> None:
     """The end of ``service``, with or without --map-points: ``measure``'s report as one
     JSON object or as ``show`` prints it; exit 1 if the service fails."""
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     try:
         report = measure()
@@ -363,7 +364,7 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
                        "pip install 'snail[bench]'", err=True)
             sys.exit(2)
     flags = click.get_current_context().find_object(dict) or {}
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     try:
         report = run_soak(plan, flags.get("quiet", False), out)
@@ -649,7 +650,7 @@ def paper(out: str, quick: bool, paper_results: str | None) -> None:
     click.echo(f"snail-bench: the {'quick' if quick else 'full'} plan takes about "
                f"{plan.expected_minutes():g} minutes on 2 idle cores with a cold circuit "
                f"cache (twice that with other work on them).", err=True)
-    from snail_client.secure import ServiceError
+    from snail_client.links import ServiceError
 
     from .netlab.namespaces import LabError
 

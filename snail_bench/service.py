@@ -24,9 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import connected
 from snail_client.progress import bar
-from snail_client.secure import AsyncSecureRunner, FixedInputs, Invocation, SecureRunner
+from snail_client.secure import AsyncSecureRunner
+from snail_client.sessions import FixedInputs, Invocation
 from snail_common.circuit import registry
 from snail_common.circuit.ir import Interface
 from snail_common.gc.stream import DEFAULT_SCHEME

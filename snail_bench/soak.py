@@ -34,10 +34,12 @@ from pathlib import Path
 
 import numpy as np
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import embedded_services
+from snail_client.links import ServiceError
 from snail_client.progress import bar
-from snail_client.secure import BUSY, SecureRunner, ServiceError
 from snail_common.circuit import registry
+from snail_common.net.errors import BUSY
 from snail_common.net.tls import add_client
 
 ROLES = ("garbler", "evaluator")

@@ -8,13 +8,16 @@ import click
 
 from snail_common.net.tls import TLSFileError, add_client, make_certs
 
+from .verbosity import VerbosityGroup
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+@click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="snail", prog_name="snail-client")
 @click.option("-v", "--verbose", is_flag=True,
               help="Also say on stderr what each frame cost (secure runs, time, bytes).")
 @click.option("-q", "--quiet", is_flag=True,
-              help="Only results and errors: no summary lines, no progress bars.")
+              help="Only results (the pose and its status, one line a frame) and errors: no "
+                   "summaries, no progress bars.")
 @click.pass_context
 def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
     """Private camera localization with two non-colluding garbled-circuit servers."""

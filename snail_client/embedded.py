@@ -29,8 +29,9 @@ from snail_common.net.conn import format_addr
 from snail_common.net.parent import PARENT_ENV
 from snail_common.net.tls import make_certs
 
-from .links import DEFAULT_LINK_TIMEOUT
-from .secure import DEFAULT_BUSY_WAIT, SecureRunner, ServiceError
+from .blocking import SecureRunner
+from .links import DEFAULT_LINK_TIMEOUT, ServiceError
+from .secure import DEFAULT_BUSY_WAIT
 
 STARTUP_TIMEOUT = 60.0
 STOP_TIMEOUT = 10.0

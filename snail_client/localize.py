@@ -32,9 +32,11 @@ from snail_common.loc.reference import reprojection_rms
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX, assess, degenerate, pose_error
 from snail_common.pnp.spec import Spec
 
+from .blocking import SecureRunner
 from .embedded import check_addresses, connected
 from .links import DEFAULT_LINK_TIMEOUT
-from .secure import DEFAULT_BUSY_WAIT, LINKS, FixedInputs, SecureRunner
+from .secure import DEFAULT_BUSY_WAIT
+from .sessions import LINKS, FixedInputs
 
 BACKENDS = ("garbled", "cleartext", "float64")
 RESULT_FORMAT = "snail-result/1"

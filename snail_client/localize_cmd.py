@@ -22,10 +22,11 @@ from snail_common.net.tls import TLSFileError
 
 from . import owner_localize
 from .inputs.options import load_frame, load_frames, localize_inputs, track_inputs
-from .links import DEFAULT_LINK_TIMEOUT
+from .links import DEFAULT_LINK_TIMEOUT, ServiceError
 from .localize import BACKENDS, Options, backend_for, localize
 from .progress import bar
-from .secure import DEFAULT_BUSY_WAIT, ServiceError
+from .secure import DEFAULT_BUSY_WAIT
+from .verbosity import flags as _verbosity
 
 
 def _options(fn: Callable) -> Callable:
@@ -158,15 +159,19 @@ def _write(output: str | None, records: list[dict], single: bool) -> None:
         Path(output).write_text(json.dumps(payload, indent=1) + "\n")
 
 
-def _verbosity() -> dict:
-    """The group's -v/-q (neither when a command is run on its own)."""
-    return click.get_current_context().find_object(dict) or {}
+def _result_line(record: dict) -> str:
+    """-q's answer: the pose and its status on one line."""
+    return (f"rvec {np.round(record['rvec'], 6).tolist()}  tvec "
+            f"{np.round(record['tvec'], 6).tolist()}  {record['status']}")
 
 
 def _show(record: dict, as_json: bool) -> None:
+    """The result as JSON, one line (-q) or the summary; -v adds the costs on stderr."""
     if as_json:
         click.echo(json.dumps(record))
-    elif not _verbosity().get("quiet"):
+    elif _verbosity().get("quiet"):
+        click.echo(_result_line(record))
+    else:
         click.echo(_summary(record))
     if _verbosity().get("verbose"):
         t, walls = record["traffic"], record["timing"]["per_iteration_s"]

@@ -23,7 +23,7 @@ from snail_common.ot import ExtReceiver
 from snail_common.ot.carry import BlobAssembler, as_words, ot_part
 from snail_common.ot.selection import MAX_TABLE_BYTES, SelectReceiver
 
-from .secure import ServiceError
+from .links import ServiceError
 
 DEFAULT_TIMEOUT = 120.0
 

@@ -30,7 +30,7 @@ from snail_common.loc.problem import ProblemError
 from .embedded import connected, start_daemon
 from .localize import RESULT_FORMAT, GarbledBackend, Options
 from .mapowner import MapOwnerLink
-from .secure import LINKS, OWNER_LINKS
+from .sessions import LINKS, OWNER_LINKS
 
 MAP_OWNER_LINKS = ("client_to_mapowner", "mapowner_to_client", *OWNER_LINKS)
 

@@ -13,15 +13,14 @@ input labels ``L0(w) ^ bit(w) * delta`` (derived from the seed, so no oblivious 
 is needed), the evaluator evaluates and returns the active output labels, and the client
 decodes: a label that is neither L0 nor L0 ^ delta means tampering (ServiceError).
 
-A caller that knows how many invocations of a circuit are coming (``expect``: a padded
-frame makes at least ``--min-invocations``) lets the runner keep up to ``ahead``
-sessions prepared, so the next one is garbled while the current one is evaluated. A
-prepared session is used once or cancelled (at ``close``), never reused. The caller may
-also name the input bits every coming invocation shares (a frame's image and map points;
-only the pose changes): their labels go to the evaluator when the session is prepared,
-so an invocation sends only the rest. That keeps its round trip's bytes small: on a
-delayed link, TCP paces or windows a 30 kB burst over more than one trip. A session
-whose shared bits turn out different is cancelled, never given a second label per wire.
+A caller that knows how many invocations of a circuit are coming (``expect``) lets the
+runner keep sessions prepared (``ahead.py``), so the next one is garbled while the current
+one is evaluated. The caller may also name the input bits every coming invocation
+shares (a frame's image and map points; only the pose changes): their labels go to the
+evaluator when the session is prepared, so an invocation sends only the rest. That
+keeps its round trip's bytes small: on a delayed link, TCP paces or windows a 30 kB
+burst over more than one trip. A session whose shared bits turn out different is
+cancelled, never given a second label per wire.
 
 Both connections are multiplexed by sid, so invocations may run concurrently. Any
 failure (an ``error`` from a server, a lost connection, the timeout) raises ServiceError
@@ -32,11 +31,8 @@ invocation reconnects as needed.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import secrets
 import time
-from collections import deque
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +40,7 @@ import numpy as np
 
 from snail_common import families
 from snail_common.circuit import registry
-from snail_common.circuit.ir import FIRST_INPUT, Interface
+from snail_common.circuit.ir import FIRST_INPUT
 from snail_common.gc import (
     IntegrityError,
     active_input_labels,
@@ -55,7 +51,7 @@ from snail_common.gc import (
 from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net import messages, tls
 from snail_common.net.chunks import runs, write_labels
-from snail_common.net.conn import connect, new_event_loop, parse_addr
+from snail_common.net.conn import connect
 from snail_common.net.errors import (
     BUSY,
     TOO_LARGE,
@@ -65,92 +61,22 @@ from snail_common.net.errors import (
 )
 from snail_common.pnp.spec import owner_bits
 
-from .links import DEFAULT_LINK_TIMEOUT, Inbox, Link, ServiceError, labels_and_stats
+from .ahead import AheadPool
+from .links import DEFAULT_LINK_TIMEOUT, Link, ServiceError, labels_and_stats
+from .sessions import (
+    LINKS,
+    OWNER_LINKS,
+    Address,
+    FixedInputs,
+    Invocation,
+    Prepared,
+    parse_address,
+)
 
-LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
-         "evaluator_to_client", "garbler_to_client")
-OWNER_LINKS = ("garbler_to_mapowner", "mapowner_to_garbler")  # map-owner circuits only
 DEFAULT_TIMEOUT = 300.0
 DEFAULT_BUSY_WAIT = 30.0  # seconds a run retries servers that answer busy
 BACKOFF_FIRST, BACKOFF_MAX = 0.05, 2.0
 DEFAULT_AHEAD = 1  # sessions garbled ahead of need, when the caller says more are coming
-
-
-@dataclass
-class Invocation:
-    """One secure run: decoded outputs, bytes per link, wall time, server timings, how
-    many table bytes reached the evaluator before this run's inputs (garble-ahead), and
-    the input-label bytes sent when it was invoked (the rest went ahead: FixedInputs)."""
-
-    outputs: np.ndarray
-    traffic: dict[str, int]
-    wall_s: float
-    timing: dict[str, float] = field(default_factory=dict)
-    garbled_ahead: int = 0
-    labels_on_call: int = 0
-
-
-@dataclass(eq=False)
-class _Prepared:
-    """A session whose garbling was requested: its secrets and both servers' inboxes."""
-
-    circuit_id: str
-    iface: Interface
-    sid: bytes
-    seed: bytes
-    delta: np.ndarray
-    garbler: Link
-    evaluator: Link
-    to_g: Inbox
-    to_e: Inbox
-    sent_g: int
-    sent_e: int
-    frame: bytes | None = None  # the map owner's frame handle, for its circuits
-    owner_bits: int = 0  # input wires (the last ones) whose labels the map owner gives
-    fixed: FixedInputs | None = None  # input bits whose labels were sent when prepared
-    # the client's label slots (two constants, one per input wire but the map owner's)
-    # still to send when invoked: those not sent with ``fixed``
-    todo: np.ndarray = field(default_factory=lambda: np.ones(0, bool))
-
-    @property
-    def usable(self) -> bool:
-        return (self.garbler.alive and self.evaluator.alive
-                and not self.to_g.failed and not self.to_e.failed)
-
-
-Address = str | tuple[str, int]
-
-
-@dataclass(frozen=True, eq=False)
-class FixedInputs:
-    """Input bits that every coming invocation of a circuit shares: ``mask`` says which
-    wires, ``bits`` their values (both bool, one per input wire)."""
-
-    mask: np.ndarray
-    bits: np.ndarray
-
-    def __post_init__(self) -> None:
-        if self.mask.dtype != np.bool_ or self.bits.dtype != np.bool_ \
-                or self.mask.shape != self.bits.shape or self.mask.ndim != 1:
-            raise ValueError("fixed inputs: mask and bits must be bool vectors of one length")
-
-    @staticmethod
-    def same(a: FixedInputs | None, b: FixedInputs | None) -> bool:
-        return a is b or (a is not None and b is not None and np.array_equal(a.mask, b.mask)
-                          and np.array_equal(a.bits, b.bits))
-
-    def matches(self, bits: np.ndarray) -> bool:
-        return bits.shape == self.bits.shape and np.array_equal(bits[self.mask],
-                                                                 self.bits[self.mask])
-
-
-def _addr(value: Address, name: str) -> tuple[str, int]:
-    if isinstance(value, tuple):
-        return value
-    try:
-        return parse_addr(value)
-    except ValueError as exc:
-        raise ValueError(f"{name}: {exc}") from None
 
 
 class AsyncSecureRunner:
@@ -163,13 +89,12 @@ class AsyncSecureRunner:
                  link_timeout: float = DEFAULT_LINK_TIMEOUT,
                  scheme: str = DEFAULT_SCHEME) -> None:
         families.register_all()
-        self.garbler_addr = _addr(garbler_addr, "garbler address")
-        self.evaluator_addr = _addr(evaluator_addr, "evaluator address")
+        self.garbler_addr = parse_address(garbler_addr, "garbler address")
+        self.evaluator_addr = parse_address(evaluator_addr, "evaluator address")
         self.tls_dir = tls_dir
         self.ctx = tls.client_context(tls_dir, "client", cert_name)
         self.timeout = timeout
         self.connect_timeout = connect_timeout
-        self.ahead = ahead
         self.busy_wait = busy_wait
         self.link_timeout = link_timeout
         if scheme not in messages.SCHEMES:
@@ -181,10 +106,7 @@ class AsyncSecureRunner:
         self.invocations = 0
         self._links: dict[str, Link] = {}
         self._lock = asyncio.Lock()
-        self._prepared: dict[str, deque[_Prepared]] = {}
-        self._expected: dict[str, int] = {}
-        self._fixed: dict[str, FixedInputs | None] = {}
-        self._filling: set[asyncio.Task] = set()
+        self.ahead = AheadPool(ahead, self._prepare, self._cancel)
         self.frame: tuple[bytes, str] | None = None  # see use_frame
 
     def use_frame(self, handle: bytes, map_owner: str) -> None:
@@ -216,20 +138,13 @@ class AsyncSecureRunner:
         return links[0], links[1]
 
     def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
-        """At least ``count`` invocations of ``circuit_id`` are coming: keep up to
-        ``ahead`` of them prepared (garbled) before they are needed, with the labels of
-        the ``fixed`` input bits they share already at the evaluator."""
-        self._fixed[circuit_id] = fixed
-        queue = self._prepared.get(circuit_id, deque())
-        for session in [x for x in queue if not FixedInputs.same(x.fixed, fixed)]:
-            queue.remove(session)  # prepared for other shared bits: of no use now
-            self._cancel(session)
-        self._expected[circuit_id] = max(count, 0)
-        self._fill(circuit_id)
+        """At least ``count`` invocations of ``circuit_id`` are coming, sharing the
+        ``fixed`` input bits: their garbling starts now (``AheadPool.expect``)."""
+        self.ahead.expect(circuit_id, count, fixed)
 
     def fixed(self, circuit_id: str) -> FixedInputs | None:
         """The input bits ``expect`` last declared shared by ``circuit_id``'s runs."""
-        return self._fixed.get(circuit_id)
+        return self.ahead.fixed(circuit_id)
 
     async def run(self, circuit_id: str, input_bits: np.ndarray) -> np.ndarray:
         """Decoded output bits of one secure run; details in ``self.last``."""
@@ -265,20 +180,22 @@ class AsyncSecureRunner:
     async def _invoke_once(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
         t0 = time.perf_counter()
         bits = np.asarray(input_bits)
-        session = (self._take(circuit_id, bits) or await self._in_flight(circuit_id, bits)
+        frame = self.frame[0] if self.frame else None
+        session = (self.ahead.take(circuit_id, bits, frame)
+                   or await self.ahead.in_flight(circuit_id, bits, frame)
                    or await self._prepare(circuit_id, fixed=False))
         iface, sid = session.iface, session.sid
         if bits.dtype != np.bool_ or bits.shape != (iface.n_inputs,):
             self._cancel(session)
             raise ValueError(f"input_bits must be a bool vector of {iface.n_inputs} bits "
                              f"for {circuit_id}, got {bits.dtype} {bits.shape}")
-        self._expected[circuit_id] = max(self._expected.get(circuit_id, 0) - 1, 0)
+        self.ahead.used(circuit_id)
         labels = active_input_labels(session.seed, session.delta, bits)
         try:
             sent_e = sum(write_labels(session.evaluator.conn, "input_labels", sid,
                                       labels[a:b], a, len(session.todo))
                          for a, b in runs(session.todo))
-            self._fill(circuit_id)  # the next sessions garble while this one evaluates
+            self.ahead.fill(circuit_id)  # the next sessions garble while this one evaluates
             await session.evaluator.conn.drain()
             results = await asyncio.wait_for(self._collect(session), self.timeout)
         except asyncio.TimeoutError:
@@ -313,12 +230,12 @@ class AsyncSecureRunner:
             self.totals[k] = self.totals.get(k, 0) + v
         return self.last
 
-    async def _prepare(self, circuit_id: str, fixed: bool = True) -> _Prepared:
+    async def _prepare(self, circuit_id: str, fixed: bool = True) -> Prepared:
         """Ask for a session's garbling now, with fresh secrets (and, ``fixed``, send the
         labels of the inputs the coming invocations share). A link that died while this
         client was idle (a restarted server: its end of the connection is found closed
         only when written to) is reconnected once, with new secrets."""
-        shared = self._fixed.get(circuit_id) if fixed else None
+        shared = self.ahead.fixed(circuit_id) if fixed else None
         try:
             return await self._prepare_once(circuit_id, shared)
         except ConnectionClosed:
@@ -328,7 +245,7 @@ class AsyncSecureRunner:
         except ConnectionClosed as exc:
             raise ServiceError(f"{circuit_id}: {exc}") from None
 
-    async def _prepare_once(self, circuit_id: str, fixed: FixedInputs | None) -> _Prepared:
+    async def _prepare_once(self, circuit_id: str, fixed: FixedInputs | None) -> Prepared:
         loop = asyncio.get_running_loop()
         try:
             registry.check_id(circuit_id)
@@ -374,50 +291,10 @@ class AsyncSecureRunner:
             garbler.cancel(sid)
             evaluator.cancel(sid)
             raise
-        return _Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
+        return Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
                          sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo)
 
-    def _take(self, circuit_id: str, bits: np.ndarray) -> _Prepared | None:
-        """A prepared session of ``circuit_id`` the servers still hold and that fits
-        ``bits`` (its fixed inputs' labels were sent for these values), if any."""
-        queue = self._prepared.get(circuit_id)
-        while queue:
-            session = queue.popleft()
-            if session.usable and (not session.owner_bits
-                                   or session.frame == (self.frame or (None,))[0]) \
-                    and (session.fixed is None or session.fixed.matches(bits)):
-                return session
-            self._cancel(session)  # expired, its link broke or other inputs: garble anew
-        return None
-
-    async def _in_flight(self, circuit_id: str, bits: np.ndarray) -> _Prepared | None:
-        """Wait for a session of ``circuit_id`` already being prepared, rather than ask
-        the garbler for yet another one (it would garble it behind those)."""
-        tasks = [t for t in self._filling if t.get_name() == circuit_id]
-        if not tasks:
-            return None
-        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-        return self._take(circuit_id, bits)
-
-    def _fill(self, circuit_id: str) -> None:
-        """Prepare sessions in the background up to min(ahead, expected invocations)."""
-        queue = self._prepared.setdefault(circuit_id, deque())
-        want = min(self.ahead, self._expected.get(circuit_id, 0))
-        for _ in range(want - len(queue) - sum(1 for t in self._filling
-                                               if t.get_name() == circuit_id)):
-            task = asyncio.get_running_loop().create_task(self._prepare(circuit_id),
-                                                          name=circuit_id)
-            self._filling.add(task)
-            task.add_done_callback(self._prepared_one)
-
-    def _prepared_one(self, task: asyncio.Task) -> None:
-        self._filling.discard(task)
-        if not task.cancelled() and task.exception() is None:
-            self._prepared.setdefault(task.get_name(), deque()).append(task.result())
-        # a failed preparation is not an error yet: the invocation that needs one
-        # prepares again and reports what breaks
-
-    async def _collect(self, session: _Prepared) -> list[tuple[np.ndarray, int, dict]]:
+    async def _collect(self, session: Prepared) -> list[tuple[np.ndarray, int, dict]]:
         """Both servers' label vectors and stats; the first failure cancels the other."""
         n_out = session.iface.n_outputs
         tasks = [asyncio.ensure_future(labels_and_stats(session.garbler, session.to_g,
@@ -435,7 +312,7 @@ class AsyncSecureRunner:
                 task.cancel()
 
     @staticmethod
-    def _cancel(session: _Prepared) -> None:
+    def _cancel(session: Prepared) -> None:
         """Tell both servers to drop a session this client gave up."""
         session.garbler.cancel(session.sid)
         session.evaluator.cancel(session.sid)
@@ -451,13 +328,7 @@ class AsyncSecureRunner:
             raise ServiceError(f"{role} health request failed: {exc!r}") from None
 
     async def close(self) -> None:
-        for task in list(self._filling):
-            task.cancel()
-        await asyncio.gather(*self._filling, return_exceptions=True)
-        for queue in self._prepared.values():
-            for session in queue:
-                self._cancel(session)
-        self._prepared.clear()
+        await self.ahead.close()
         links, self._links = list(self._links.values()), {}
         await asyncio.gather(*(link.close() for link in links), return_exceptions=True)
 
@@ -468,99 +339,3 @@ class AsyncSecureRunner:
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
-
-class SecureRunner:
-    """Blocking wrapper of AsyncSecureRunner with its own event loop (uvloop)."""
-
-    def __init__(self, garbler_addr: Address, evaluator_addr: Address,
-                 tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
-                 connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
-                 busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
-                 link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 scheme: str = DEFAULT_SCHEME) -> None:
-        self._loop = new_event_loop()
-        self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
-                                         connect_timeout, ahead, busy_wait, cert_name,
-                                         link_timeout, scheme)
-
-    def use_frame(self, handle: bytes, map_owner: str) -> None:
-        """Map-owner circuits take this frame's map-owner inputs (see the async runner)."""
-        self._runner.use_frame(handle, map_owner)
-
-    def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
-        """At least ``count`` invocations of ``circuit_id`` are coming, sharing the
-        ``fixed`` input bits (see the async runner); their garbling starts now."""
-        async def announce() -> None:
-            self._runner.expect(circuit_id, count, fixed)
-            await asyncio.sleep(0)
-
-        self._complete(announce())
-
-    def fixed(self, circuit_id: str) -> FixedInputs | None:
-        """The input bits ``expect`` last declared shared by ``circuit_id``'s runs."""
-        return self._runner.fixed(circuit_id)
-
-    def _complete(self, coro: Any) -> Any:
-        """Run ``coro`` on this runner's loop. If it is interrupted (Ctrl-C), the tasks it
-        left are cancelled and finished first, so nothing dies half-way with the loop."""
-        try:
-            return self._loop.run_until_complete(coro)
-        except (KeyboardInterrupt, SystemExit):  # the runner is going: settle its tasks
-            self._settle()
-            raise
-
-    def _settle(self) -> None:
-        pending = [t for t in asyncio.all_tasks(self._loop) if not t.done()]
-        for task in pending:
-            task.cancel()
-        if pending:
-            with contextlib.suppress(BaseException):
-                self._loop.run_until_complete(asyncio.gather(*pending,
-                                                             return_exceptions=True))
-
-    def run(self, circuit_id: str, input_bits: np.ndarray) -> np.ndarray:
-        """Decoded output bits; traffic and time of the run in ``self.last``."""
-        return self._complete(self._runner.run(circuit_id, input_bits))
-
-    def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
-        return self._complete(self._runner.invoke(circuit_id, input_bits))
-
-    def health(self, role: str) -> dict[str, Any]:
-        return self._complete(self._runner.health(role))
-
-    @property
-    def scheme(self) -> str:
-        """The garbling scheme of this runner's sessions."""
-        return self._runner.scheme
-
-    @property
-    def endpoints(self) -> tuple[tuple[str, int], tuple[str, int], str | Path]:
-        """(garbler address, evaluator address, TLS directory): to open more clients."""
-        r = self._runner
-        return r.garbler_addr, r.evaluator_addr, r.tls_dir
-
-    @property
-    def last(self) -> Invocation | None:
-        return self._runner.last
-
-    @property
-    def totals(self) -> dict[str, int]:
-        return self._runner.totals
-
-    @property
-    def invocations(self) -> int:
-        return self._runner.invocations
-
-    def close(self) -> None:
-        if not self._loop.is_closed():
-            with contextlib.suppress(Exception):
-                self._loop.run_until_complete(self._runner.close())
-            self._settle()
-            self._loop.close()
-
-    def __enter__(self) -> SecureRunner:
-        self._complete(self._runner.connect())
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

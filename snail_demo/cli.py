@@ -10,11 +10,12 @@ import click
 
 from snail_client.localize import Options, backend_for
 from snail_client.progress import bar
+from snail_client.verbosity import VerbosityGroup
 
 from .accuracy import POSITION_FRAC, ROTATION_DEG, sweep
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="snail", prog_name="snail-demo")
 @click.option("-v", "--verbose", is_flag=True,
               help="Also say on stderr what each control step or frame gave.")

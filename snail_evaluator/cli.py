@@ -15,9 +15,9 @@ from snail_common.net.cli import (
     options_from,
 )
 from snail_common.net.conn import format_addr
+from snail_common.net.listener import run_daemon
 from snail_common.net.logs import setup
 from snail_common.net.parent import exit_with_parent
-from snail_common.net.service import run_daemon
 
 from .daemon import EvaluatorDaemon
 

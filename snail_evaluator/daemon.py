@@ -19,84 +19,35 @@ wire labels. A session whose other half does not arrive, or whose stream stalls,
 ``--session-timeout`` seconds fails; so does one whose garbler connection breaks. The
 client always gets an ``error`` naming what happened, and the session is freed (see the
 ``health`` counters). The evaluator never receives a seed or the offset delta.
+
+The client's half is ``client_side.py``, the garbler's ``tables.py``, a session's state
+``session.py``; this module keeps the session book where the halves meet.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import time
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from snail_common.circuit.ir import FIRST_INPUT
-from snail_common.circuit.schedule import Schedule
-from snail_common.gc import StreamError
-from snail_common.gc.stream import DEFAULT_SCHEME, SCHEME_HALF_GATES, scheme_id
+from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net import messages
-from snail_common.net.chunks import LabelAssembler, write_labels
 from snail_common.net.conn import Connection
-from snail_common.net.errors import (
-    ABORTED,
-    BAD_REQUEST,
-    BUSY,
-    DUPLICATE_SESSION,
-    PEER_LOST,
-    STREAM,
-    TIMEOUT,
-    UNEXPECTED,
-    ConnectionClosed,
-    ProtocolError,
-)
+from snail_common.net.errors import BAD_REQUEST, TIMEOUT, ProtocolError
 from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
-from snail_common.pnp.spec import owner_bits
 
-from .lanes import EvalLane, LaneBatcher, Solo
+from .client_side import ClientSide
+from .lanes import LaneBatcher
 from .owner import EarlyOwnerLabels
-
-# input-label bytes a session may send before its circuit is loaded: far above the
-# largest circuit's inputs (n = 4096 points take about 10 MB), far below a memory risk
-MAX_EARLY_LABEL_BYTES = 64 << 20
+from .session import Session, consume_failure
+from .tables import GarblerSide
 
 
-@dataclass(eq=False)
-class Session:
-    """One invocation, from whichever half arrives first until it is done or failed."""
-
-    sid: bytes
-    circuit: str
-    hash: str
-    ready: asyncio.Future  # the complete input labels, or the failure
-    client: Connection | None = None
-    garbler: bool = False
-    labels: LabelAssembler | None = None
-    failure: ProtocolError | None = None
-    started: float = field(default_factory=time.monotonic)
-    watchdog: asyncio.TimerHandle | None = None
-    peer: str = ""  # the client's certificate name, once its half has arrived
-    n_and: int = 0
-    bytes_in: int = 0
-    bytes_out: int = 0
-    queued: int = 0  # table bytes buffered while the labels are awaited
-    scheme: str = DEFAULT_SCHEME  # as both halves declared it; the stream header must agree
-    early: list[tuple[dict[str, Any], int]] = field(default_factory=list)  # labels that
-    # came while the circuit was still loading, replayed once it is
-    early_bytes: int = 0  # their wire size
-    owner: LabelAssembler | None = None  # the map owner's wires, if the circuit has any
-
-    def record(self, outcome: str, reason: str = "") -> dict:
-        """This session's log line fields (see Daemon.log_session)."""
-        return {"sid": self.sid, "circuit": self.circuit, "n_and": self.n_and,
-                "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
-                "seconds": time.monotonic() - self.started, "outcome": outcome,
-                "reason": reason}
-
-
-class EvaluatorDaemon(Daemon):
+class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
     role = "evaluator"
     allowed = ("client", "garbler", "mapowner")
 
@@ -121,7 +72,7 @@ class EvaluatorDaemon(Daemon):
         s = Session(msg["sid"], msg["circuit"], msg["hash"],
                     asyncio.get_running_loop().create_future(), peer=peer, bytes_in=size,
                     scheme=msg.get("scheme", DEFAULT_SCHEME))
-        s.ready.add_done_callback(_consume)
+        s.ready.add_done_callback(consume_failure)
         self.sessions[s.sid] = s
         return s
 
@@ -183,101 +134,6 @@ class EvaluatorDaemon(Daemon):
                                              f"scheme of this session ({s.scheme} vs "
                                              f"{msg.get('scheme', DEFAULT_SCHEME)})")
 
-    # ---- the client side -------------------------------------------------------------------
-    async def _serve_client(self, conn: Connection) -> None:
-        """A client's messages, each handled at once: a circuit being loaded or compiled
-        for a session does not hold up the connection (a client probes a quiet link with
-        ``health_request`` and gives it up if unanswered)."""
-        loading: set[asyncio.Task] = set()
-        try:
-            while True:
-                msg, size = await self.next_message(
-                    conn, lambda: any(s.client is conn for s in self.sessions.values()))
-                kind = msg["t"]
-                if kind == "session_start":
-                    s = self._client_start(conn, msg, size)
-                    if s is not None:
-                        task = asyncio.get_running_loop().create_task(self._client_load(s))
-                        loading.add(task)
-                        task.add_done_callback(loading.discard)
-                elif kind == "input_labels":
-                    self._client_labels(conn, msg, size)
-                elif kind == "error" and "sid" in msg:
-                    s = self.sessions.get(msg["sid"])
-                    if s is not None and s.client is conn:
-                        self._fail(s, ProtocolError(ABORTED, "cancelled by the client"))
-                elif await self.ends_link(conn, kind, "a client may not send {} to the "
-                                                      "evaluator"):
-                    return
-        finally:
-            for task in loading:
-                task.cancel()
-            for s in [s for s in self.sessions.values() if s.client is conn]:
-                self._fail(s, ProtocolError(ABORTED, "the client disconnected"))
-
-    def _client_start(self, conn: Connection, msg: dict[str, Any],
-                      size: int) -> Session | None:
-        """The client's half of a session (None if refused: the client was told)."""
-        sid = msg["sid"]
-        try:
-            s = self.sessions.get(sid)
-            if s is None:
-                s = self._open(msg, size, conn.peer_name)
-            elif s.client is not None:
-                raise ProtocolError(DUPLICATE_SESSION, "session id already in use")
-            else:
-                self._check_same(s, msg)
-                self.claim(conn.peer_name)  # the garbler's half came first
-                s.peer = conn.peer_name
-                s.bytes_in += size
-            s.client = conn
-        except ProtocolError as exc:
-            conn.post(messages.error(exc.code, exc.message, sid))
-            if exc.code == BUSY:
-                self.log_session(peer=conn.peer_name, sid=sid, circuit=msg["circuit"],
-                                 n_and=0, bytes_in=size, bytes_out=0, seconds=0.0,
-                                 outcome=exc.code, reason=exc.message)
-            return None
-        return s
-
-    async def _client_load(self, s: Session) -> None:
-        """Load (or compile) the session's circuit, then take the labels that came early."""
-        try:
-            circuit, schedule = await self.circuit(s.circuit, s.hash)
-        except ProtocolError as exc:
-            self._fail(s, exc)
-            return
-        s.n_and = schedule.n_and
-        if s.failure is None:
-            n_owner = owner_bits(circuit)
-            s.labels = LabelAssembler("input_labels",
-                                      FIRST_INPUT + schedule.n_inputs - n_owner)
-            if n_owner:
-                s.owner = LabelAssembler("owner_labels", n_owner)
-                for msg, size in self.owner_early.take(s.sid):
-                    self._add_labels(s, msg, size, owner=True)
-            self._arm(s)
-            early, s.early, s.early_bytes = s.early, [], 0
-            for msg, size in early:
-                self._add_labels(s, msg, size)
-
-    def _client_labels(self, conn: Connection, msg: dict[str, Any], size: int) -> None:
-        s = self.sessions.get(msg["sid"])
-        if s is None or s.client is not conn:
-            conn.post(messages.error(UNEXPECTED, "input labels for no session of yours "
-                                                 "(never started, failed or finished)",
-                                     msg["sid"]))
-            return
-        if s.labels is None:  # its circuit is still loading
-            if s.early_bytes + size > MAX_EARLY_LABEL_BYTES:
-                self._fail(s, ProtocolError(BAD_REQUEST, "more input labels than any "
-                                                         "circuit takes"))
-            elif s.failure is None:
-                s.early.append((msg, size))
-                s.early_bytes += size
-            return
-        self._add_labels(s, msg, size)
-
     def _add_labels(self, s: Session, msg: dict[str, Any], size: int,
                     owner: bool = False) -> None:
         """One chunk of the client's input labels (or, ``owner``, of the map owner's)."""
@@ -318,177 +174,3 @@ class EvaluatorDaemon(Daemon):
         self.owner_early.drop(record["sid"])
         super().finish(peer, record)
 
-    # ---- the garbler side ------------------------------------------------------------------
-    async def _serve_garbler(self, conn: Connection) -> None:
-        while True:
-            # idle between sessions (a pooled connection): closed after --idle-timeout
-            msg, size = await self.next_message(conn, lambda: False)
-            kind = msg["t"]
-            if kind == "session_start":
-                await self._garbler_session(conn, msg, size)
-            elif await self.ends_link(conn, kind, "the garbler sent {} outside a session"):
-                return
-
-    async def _garbler_session(self, conn: Connection, msg: dict[str, Any],
-                               size: int) -> None:
-        sid = msg["sid"]
-        s = self.sessions.get(sid)
-        if s is None:
-            # the garbler came first; ProtocolError (busy) closes conn
-            s = self._open(msg, size)
-        elif s.garbler:
-            raise ProtocolError(DUPLICATE_SESSION, "session id already streaming")
-        else:
-            s.bytes_in += size
-        s.garbler = True
-        t0 = time.monotonic()
-        try:
-            self._check_same(s, msg)
-            _, schedule = await self.circuit(msg["circuit"], msg["hash"])
-            self._arm(s)
-            self.counters["streaming"] += 1
-            try:
-                ev, received, ahead, t_labels = await self._evaluate(conn, s, schedule)
-            finally:
-                self.counters["streaming"] -= 1
-            received += size
-            t_done = time.monotonic()
-            outputs = ev.output_labels()
-        except ProtocolError as exc:
-            self._fail(s, ProtocolError(exc.code, f"the garbler's table stream: {exc.message}"))
-            raise ProtocolError(exc.code, exc.message) from None  # closes the garbler conn
-        except (ConnectionClosed, TimeoutError) as exc:
-            code = TIMEOUT if isinstance(exc, TimeoutError) else PEER_LOST
-            self._fail(s, ProtocolError(code, f"the garbler's table stream broke off: {exc}"))
-            raise ConnectionClosed(str(exc)) from None
-        except asyncio.CancelledError:
-            self._fail(s, ProtocolError(ABORTED, "the evaluator is shutting down"))
-            raise
-        if s.failure is not None:  # cancelled while the last frame was evaluated
-            raise ProtocolError(s.failure.code, s.failure.message)
-        # the garbler may have stopped waiting for this (it times out, or went): the
-        # result is still the client's, and the session must end either way
-        with contextlib.suppress(ConnectionClosed):
-            s.bytes_out += conn.write(messages.make("done", sid=sid))
-        try:
-            s.bytes_out += write_labels(s.client, "output_labels", sid, outputs)
-            s.bytes_out += s.client.write(messages.make(
-                "stats", sid=sid, traffic={"garbler_to_evaluator": received,
-                                           "garbled_ahead": ahead},
-                timing={"wait_s": t_labels - t0, "evaluate_s": t_done - t_labels,
-                        "lanes": float(ev.lanes)}))
-        except ConnectionClosed:
-            pass  # the client left after its labels arrived: nobody to tell
-        self._complete(s)
-        with contextlib.suppress(ConnectionClosed):
-            await s.client.drain()
-        await conn.drain()
-
-    async def _evaluate(self, conn: Connection, s: Session,
-                        schedule: Schedule) -> tuple[Solo | EvalLane, int, int, float]:
-        """Read the table stream of ``s``; evaluate it once the client's labels are in.
-
-        Garbling does not depend on inputs, so a client may have the garbler garble ahead:
-        until its labels arrive, frames are buffered (up to ``ahead_bytes`` over all
-        sessions; beyond that the stream waits, and TCP holds the garbler back). The
-        watchdog bounds the wait for labels; once evaluating, a stalled stream times out.
-        With lanes on, the session joins a batch when its labels come (lanes.py) and,
-        once its own stream is in, waits for the batch's pass to end.
-        Returns the evaluation, the bytes received, how many of them came before the
-        labels and when the labels arrived."""
-        received, ahead, timeout = 0, 0, self.options.session_timeout
-        laned = scheme_id(s.scheme) == SCHEME_HALF_GATES  # lanes batch half-gates sessions only
-        buffered: list[bytes | memoryview] = []
-        ev: Solo | EvalLane | None = None
-        t_labels = time.monotonic()
-        recv: asyncio.Future | None = None
-        try:
-            while ev is None or not ev.stream_complete:
-                if ev is None and s.ready.done():  # raises the session's failure, if any
-                    ev = (await self.lanes.lane(s.circuit, schedule, s.ready.result())
-                          if laned else Solo(schedule, s.ready.result(), scheme_id(s.scheme)))
-                    if s.watchdog:
-                        s.watchdog.cancel()
-                    t_labels = time.monotonic()
-                    frames = list(buffered)
-                    buffered.clear()
-                    ahead = received
-                    self.ahead_buffered -= s.queued
-                    s.queued = 0
-                    await self._feed(conn, ev, frames)
-                    continue
-                if ev is None and self._queue_full(s):
-                    await asyncio.wait({s.ready})  # full: the stream waits for the labels
-                    continue
-                if recv is None:
-                    recv = asyncio.ensure_future(conn.recv(None if ev is None else timeout))
-                if ev is None:
-                    await asyncio.wait({recv, s.ready}, return_when=asyncio.FIRST_COMPLETED)
-                    if not recv.done():
-                        continue
-                msg, size = await recv
-                recv = None
-                received += size
-                s.bytes_in += size
-                if s.failure is not None:
-                    raise ProtocolError(s.failure.code, s.failure.message)
-                if msg["t"] == "error":
-                    raise ProtocolError(msg["code"], f"the garbler reported: {msg['message']}")
-                if msg["t"] != "tables" or msg["sid"] != s.sid:
-                    raise ProtocolError(UNEXPECTED, f"expected tables of this session, the "
-                                                    f"garbler sent {msg['t']}")
-                if ev is None:
-                    buffered.append(msg["data"])
-                    self.ahead_buffered += len(msg["data"])
-                    s.queued += len(msg["data"])
-                else:
-                    await self._feed(conn, ev, [msg["data"]])
-            try:
-                await asyncio.wait_for(ev.wait_done(), timeout)
-            except asyncio.TimeoutError:
-                raise TimeoutError(f"the other lanes of this session's batch stalled for "
-                                   f"{timeout:g} s") from None
-        except BaseException:
-            if ev is not None:
-                ev.drop()  # a batch goes on without this lane
-            raise
-        finally:
-            if ev is not None and laned:
-                self.lanes.release(s.circuit)
-            self.ahead_buffered -= s.queued
-            s.queued = 0
-            if recv is not None:
-                recv.cancel()
-        return ev, received, ahead, t_labels
-
-    def _queue_full(self, s: Session) -> bool:
-        """No more garbled-ahead tables for ``s``: the daemon's buffer, or its client's
-        share of it, is full."""
-        if self.ahead_buffered >= self.options.ahead_bytes:
-            return True
-        # sessions whose client has not shown up yet share one peer's share
-        peer_queued = sum(x.queued for x in self.sessions.values() if x.peer == s.peer)
-        return peer_queued >= self.options.ahead_bytes_per_peer
-
-    async def _feed(self, conn: Connection, ev: Solo | EvalLane,
-                    frames: list[bytes | memoryview]) -> None:
-        """Evaluate ``frames`` in the worker pool; then ``conn`` may receive into their
-        buffers again (evaluation keeps no view of them)."""
-        try:
-            await self.work(_feed_all, ev, frames)
-        except StreamError as exc:
-            raise ProtocolError(STREAM, str(exc)) from None
-        for data in frames:
-            if isinstance(data, memoryview):
-                conn.recycle(data)
-
-
-def _feed_all(ev: Solo | EvalLane, frames: list[bytes | memoryview]) -> None:
-    for data in frames:
-        ev.feed(data)
-
-
-def _consume(future: asyncio.Future) -> None:
-    """Mark a failure as seen when no garbler half waits for it."""
-    if not future.cancelled():
-        future.exception()

@@ -1,4 +1,4 @@
-"""snail-mapd: the map owner's daemon (the map-owner setting, README)."""
+"""snail-mapd: the map owner's daemon (the map-owner setting, docs/map-owner.md)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,10 @@ from snail_common.loc.problem import ProblemError
 from snail_common.net import tls
 from snail_common.net.cli import LOG_LEVELS, address, fail, log_level_of
 from snail_common.net.conn import format_addr
+from snail_common.net.listener import run_daemon
 from snail_common.net.logs import setup
+from snail_common.net.options import Options
 from snail_common.net.parent import exit_with_parent
-from snail_common.net.service import Options, run_daemon
 
 from .daemon import MAX_FRAMES, MapOwnerDaemon
 

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from snail_bench import mapowner, service
 from snail_bench.cli import main
-from snail_client.secure import ServiceError
+from snail_client.links import ServiceError
 
 SERVICE = {"service": {"lm-sil-ldlt-n4": {
     "median_s": 0.25, "min_s": 0.2, "max_s": 0.5, "first_s": 1.5, "and": 123_456,

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from shared_paths import EXAMPLES
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import embedded_services
 from snail_client.localize import GarbledBackend, Options, localize
-from snail_client.secure import SecureRunner
 from snail_common.circuit import registry
 from snail_common.loc.backends import CircuitBackend, Float64Backend
 from snail_common.loc.problem import load_problem

@@ -11,7 +11,8 @@ import pytest
 
 from snail_common.net.chunks import LabelAssembler
 from snail_common.net.service import Options
-from snail_evaluator.daemon import EvaluatorDaemon, Session
+from snail_evaluator.daemon import EvaluatorDaemon
+from snail_evaluator.session import Session
 
 
 class _Client:

@@ -5,7 +5,7 @@ Every link goes through a loopback proxy the test breaks (tests/fault_proxy.py):
 that stops reading, a partition that keeps both sockets open and silent, a reset. Then
 the processes themselves: SIGSTOP mid-frame, and a daemon killed and restarted. The
 bounds are the flags the daemons and the client run with here (3 s session timeout,
-5 s client link timeout) plus slack for a loaded CI machine; the README's fault table
+5 s client link timeout) plus slack for a loaded CI machine; the fault table of docs/reliability.md
 quotes what these tests measure.
 """
 
@@ -25,8 +25,9 @@ import pytest
 from fault_proxy import FaultProxy
 from test_service_e2e import cleartext, wait_for
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import Daemon, embedded_services, make_certs, start_daemon
-from snail_client.secure import SecureRunner, ServiceError
+from snail_client.links import ServiceError
 from snail_common.circuit import registry
 from snail_common.net.conn import parse_addr
 

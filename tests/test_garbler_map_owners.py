@@ -13,8 +13,9 @@ import sys
 import numpy as np
 import pytest
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import start_daemon
-from snail_client.secure import SecureRunner, ServiceError
+from snail_client.links import ServiceError
 from snail_common.circuit import registry
 from snail_common.net import errors
 from snail_common.net.tls import make_certs

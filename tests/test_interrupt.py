@@ -14,7 +14,8 @@ from daemons import sigint_default
 from shared_paths import EXAMPLES
 
 from snail_client.embedded import embedded_services
-from snail_client.secure import AsyncSecureRunner, ServiceError
+from snail_client.links import ServiceError
+from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import registry
 
 

@@ -26,11 +26,12 @@ from click.testing import CliRunner
 from shared_paths import EXAMPLES
 from test_service_e2e import hello, raw, read_msg
 
+from snail_client.blocking import SecureRunner
 from snail_client.cli import main as client
 from snail_client.embedded import Daemon
+from snail_client.links import ServiceError
 from snail_client.localize import GarbledBackend
 from snail_client.mapowner import MapOwnerLink
-from snail_client.secure import SecureRunner, ServiceError
 from snail_common.circuit import registry
 from snail_common.circuit.ir import FIRST_INPUT
 from snail_common.families import register_all
@@ -311,6 +312,7 @@ def test_the_evaluator_takes_map_owner_wires_from_the_map_owner_only(servers):
     circuit = "loc/lm-sil-ldlt-n6-mo"
     register_all()
     iface = registry.interface(circuit)
+    registry.compiled(circuit)  # in the shared cache: the evaluator's load fits the timeout
     everything = FIRST_INPUT + iface.n_inputs
     sid = bytes(range(16))
     with contextlib.closing(raw(evaluator.address, tls_dir)) as sock:

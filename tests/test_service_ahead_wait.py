@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import start_daemon
-from snail_client.secure import SecureRunner
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net.tls import make_certs
 from tests.daemons import session_outcomes, start_patched_evaluator

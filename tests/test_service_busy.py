@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from daemons import daemons_with
 
-from snail_client.secure import AsyncSecureRunner, ServiceError
+from snail_client.links import ServiceError
+from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net.errors import BUSY
 

@@ -21,8 +21,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import embedded_services, start_daemon
-from snail_client.secure import LINKS, AsyncSecureRunner, SecureRunner, ServiceError
+from snail_client.links import ServiceError
+from snail_client.secure import AsyncSecureRunner
+from snail_client.sessions import LINKS
 from snail_common.circuit import encode_inputs, evaluate_bits, registry
 from snail_common.net import errors, messages, tls
 from snail_common.net.conn import new_event_loop, parse_addr
@@ -123,7 +126,7 @@ def test_expected_runs_are_garbled_before_their_inputs_exist(services):
             for _ in range(3):
                 bits = rng.random(schedule.n_inputs) < 0.5
                 runs.append((bits, await r.invoke("ops/fmul-x4", bits)))
-            return runs, r._prepared["ops/fmul-x4"]
+            return runs, r.ahead._prepared["ops/fmul-x4"]
 
     runs, left = asyncio.run(scenario())
     for bits, inv in runs:

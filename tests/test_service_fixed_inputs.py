@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from snail_client.localize import GarbledBackend
-from snail_client.secure import AsyncSecureRunner, FixedInputs
+from snail_client.secure import AsyncSecureRunner
+from snail_client.sessions import FixedInputs
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.loc.backends import frame_inputs, frame_wires, interface, shared_bits, sil_values
 from snail_common.loc.types import Normalized, Pose

@@ -23,9 +23,11 @@ from cryptography.x509.oid import NameOID
 from daemons import daemons_with
 from test_service_e2e import hello, raw, read_msg
 
+from snail_client.blocking import SecureRunner
 from snail_client.cli import main
 from snail_client.embedded import start_daemon
-from snail_client.secure import AsyncSecureRunner, SecureRunner, ServiceError
+from snail_client.links import ServiceError
+from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.gc.labels import fresh_delta, labels_to_bytes
 from snail_common.net import errors, messages, tls

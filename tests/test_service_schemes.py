@@ -14,7 +14,8 @@ import pytest
 from daemons import daemons_with
 from shared_paths import EXAMPLES
 
-from snail_client.secure import AsyncSecureRunner, SecureRunner
+from snail_client.blocking import SecureRunner
+from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.gc import Evaluator, Garbler, StreamError, active_input_labels, fresh_delta
 from snail_common.gc.stream import SCHEME_HALF_GATES

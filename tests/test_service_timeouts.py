@@ -13,7 +13,7 @@ import pytest
 from daemons import daemons_with
 from test_service_e2e import hello, raw, read_msg
 
-from snail_client.secure import SecureRunner
+from snail_client.blocking import SecureRunner
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net import errors
 from snail_common.net import tls as tls_mod

@@ -27,8 +27,8 @@ from snail_bench.soak import (
     percentiles,
     summarize,
 )
+from snail_client.links import ServiceError
 from snail_client.localize import Options, localize
-from snail_client.secure import ServiceError
 from snail_common.loc.backends import CircuitBackend
 from snail_common.loc.synthetic import random_scene
 

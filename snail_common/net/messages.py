@@ -19,7 +19,7 @@ garbler -> client            ``output_zero_labels`` chunks, then ``stats``; or `
 evaluator -> client          ``output_labels`` chunks, then ``stats``; or ``error``
 server -> anyone             ``health`` (reply to ``health_request``), ``error``, ``bye``
 
-The map-owner setting (README, "Map-owner setting") adds the role ``mapowner``:
+The map-owner setting (docs/map-owner.md) adds the role ``mapowner``:
 client -> mapowner           ``map_info_request``; answered by ``map_info`` chunks (the
                              sorted public id list and the normalizing transform);
                              ``ot_base_a`` once (answered ``ot_base_b``), then per frame

@@ -1,7 +1,7 @@
 """Oblivious selection of one-time-padded values: n queries, each a 1-out-of-N OT
 (Naor-Pinkas 1999) built from ceil(log2 N) random 1-out-of-2 OTs of an IKNP session.
 
-For the map-owner setting (README, "Map-owner setting"): the device (receiver) holds n
+For the map-owner setting (docs/map-owner.md): the device (receiver) holds n
 secret indices into the map owner's N points (positions in its sorted id list); the map
 owner (sender) holds the points and a fresh pad P_i per query. The device gets
 v[idx_i] ^ P_i and nothing else; the map owner sees only OT choice bits under IKNP's pads.

@@ -1,0 +1,106 @@
+"""Garble-ahead on the client: sessions prepared before their inputs exist.
+
+Garbling does not depend on inputs, so a caller that knows invocations of a circuit are
+coming (``expect``: a padded frame makes at least ``--min-invocations``) lets the pool
+keep up to ``ahead`` sessions prepared, the next one garbled while the current one is
+evaluated. A prepared session is used once or cancelled, never reused; one prepared for
+other shared input bits (``FixedInputs``), another map-owner frame, or whose link broke
+is cancelled when found and a fresh one is garbled.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from collections.abc import Awaitable, Callable
+
+import numpy as np
+
+from .sessions import FixedInputs, Prepared
+
+
+class AheadPool:
+    """Prepared sessions by circuit id. ``prepare(circuit_id)`` asks the servers for a new
+    one (with the declared fixed inputs' labels); ``cancel(session)`` drops one."""
+
+    def __init__(self, ahead: int, prepare: Callable[[str], Awaitable[Prepared]],
+                 cancel: Callable[[Prepared], None]) -> None:
+        self.ahead = ahead
+        self._prepare = prepare
+        self._cancel = cancel
+        self._prepared: dict[str, deque[Prepared]] = {}
+        self._expected: dict[str, int] = {}
+        self._fixed: dict[str, FixedInputs | None] = {}
+        self._filling: set[asyncio.Task] = set()
+
+    def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
+        """At least ``count`` invocations of ``circuit_id`` are coming: keep up to
+        ``ahead`` of them prepared (garbled) before they are needed, with the labels of
+        the ``fixed`` input bits they share already at the evaluator."""
+        self._fixed[circuit_id] = fixed
+        queue = self._prepared.get(circuit_id, deque())
+        for session in [x for x in queue if not FixedInputs.same(x.fixed, fixed)]:
+            queue.remove(session)  # prepared for other shared bits: of no use now
+            self._cancel(session)
+        self._expected[circuit_id] = max(count, 0)
+        self.fill(circuit_id)
+
+    def fixed(self, circuit_id: str) -> FixedInputs | None:
+        """The input bits ``expect`` last declared shared by ``circuit_id``'s runs."""
+        return self._fixed.get(circuit_id)
+
+    def used(self, circuit_id: str) -> None:
+        """One of the expected invocations of ``circuit_id`` is under way."""
+        self._expected[circuit_id] = max(self._expected.get(circuit_id, 0) - 1, 0)
+
+    def take(self, circuit_id: str, bits: np.ndarray, frame: bytes | None) -> Prepared | None:
+        """A prepared session of ``circuit_id`` the servers still hold and that fits
+        ``bits`` (its fixed inputs' labels were sent for these values) and, for a map-owner
+        circuit, the map owner's ``frame``, if any."""
+        queue = self._prepared.get(circuit_id)
+        while queue:
+            session = queue.popleft()
+            if session.usable and (not session.owner_bits
+                                   or session.frame == frame) \
+                    and (session.fixed is None or session.fixed.matches(bits)):
+                return session
+            self._cancel(session)  # expired, its link broke or other inputs: garble anew
+        return None
+
+    async def in_flight(self, circuit_id: str, bits: np.ndarray,
+                        frame: bytes | None) -> Prepared | None:
+        """Wait for a session of ``circuit_id`` already being prepared, rather than ask
+        the garbler for yet another one (it would garble it behind those)."""
+        tasks = [t for t in self._filling if t.get_name() == circuit_id]
+        if not tasks:
+            return None
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        return self.take(circuit_id, bits, frame)
+
+    def fill(self, circuit_id: str) -> None:
+        """Prepare sessions in the background up to min(ahead, expected invocations)."""
+        queue = self._prepared.setdefault(circuit_id, deque())
+        want = min(self.ahead, self._expected.get(circuit_id, 0))
+        for _ in range(want - len(queue) - sum(1 for t in self._filling
+                                               if t.get_name() == circuit_id)):
+            task = asyncio.get_running_loop().create_task(self._prepare(circuit_id),
+                                                          name=circuit_id)
+            self._filling.add(task)
+            task.add_done_callback(self._prepared_one)
+
+    def _prepared_one(self, task: asyncio.Task) -> None:
+        self._filling.discard(task)
+        if not task.cancelled() and task.exception() is None:
+            self._prepared.setdefault(task.get_name(), deque()).append(task.result())
+        # a failed preparation is not an error yet: the invocation that needs one
+        # prepares again and reports what breaks
+
+    async def close(self) -> None:
+        """Stop preparing and cancel every prepared session."""
+        for task in list(self._filling):
+            task.cancel()
+        await asyncio.gather(*self._filling, return_exceptions=True)
+        for queue in self._prepared.values():
+            for session in queue:
+                self._cancel(session)
+        self._prepared.clear()

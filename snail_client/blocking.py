@@ -1,0 +1,116 @@
+"""The blocking face of the secure runner: ``SecureRunner`` runs ``AsyncSecureRunner`` on
+its own (uvloop) event loop, for callers that are not asyncio programs (the CLI, the
+``Localizer`` API, the benchmarks)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from snail_common.gc.stream import DEFAULT_SCHEME
+from snail_common.net.conn import new_event_loop
+
+from .links import DEFAULT_LINK_TIMEOUT
+from .secure import DEFAULT_AHEAD, DEFAULT_BUSY_WAIT, DEFAULT_TIMEOUT, AsyncSecureRunner
+from .sessions import Address, FixedInputs, Invocation
+
+
+class SecureRunner:
+    """Blocking wrapper of AsyncSecureRunner with its own event loop (uvloop)."""
+
+    def __init__(self, garbler_addr: Address, evaluator_addr: Address,
+                 tls_dir: str | Path, timeout: float = DEFAULT_TIMEOUT,
+                 connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
+                 busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
+                 link_timeout: float = DEFAULT_LINK_TIMEOUT,
+                 scheme: str = DEFAULT_SCHEME) -> None:
+        self._loop = new_event_loop()
+        self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
+                                         connect_timeout, ahead, busy_wait, cert_name,
+                                         link_timeout, scheme)
+
+    def use_frame(self, handle: bytes, map_owner: str) -> None:
+        """Map-owner circuits take this frame's map-owner inputs (see the async runner)."""
+        self._runner.use_frame(handle, map_owner)
+
+    def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
+        """At least ``count`` invocations of ``circuit_id`` are coming, sharing the
+        ``fixed`` input bits (see the async runner); their garbling starts now."""
+        async def announce() -> None:
+            self._runner.expect(circuit_id, count, fixed)
+            await asyncio.sleep(0)
+
+        self._complete(announce())
+
+    def fixed(self, circuit_id: str) -> FixedInputs | None:
+        """The input bits ``expect`` last declared shared by ``circuit_id``'s runs."""
+        return self._runner.fixed(circuit_id)
+
+    def _complete(self, coro: Any) -> Any:
+        """Run ``coro`` on this runner's loop. If it is interrupted (Ctrl-C), the tasks it
+        left are cancelled and finished first, so nothing dies half-way with the loop."""
+        try:
+            return self._loop.run_until_complete(coro)
+        except (KeyboardInterrupt, SystemExit):  # the runner is going: settle its tasks
+            self._settle()
+            raise
+
+    def _settle(self) -> None:
+        pending = [t for t in asyncio.all_tasks(self._loop) if not t.done()]
+        for task in pending:
+            task.cancel()
+        if pending:
+            with contextlib.suppress(BaseException):
+                self._loop.run_until_complete(asyncio.gather(*pending,
+                                                             return_exceptions=True))
+
+    def run(self, circuit_id: str, input_bits: np.ndarray) -> np.ndarray:
+        """Decoded output bits; traffic and time of the run in ``self.last``."""
+        return self._complete(self._runner.run(circuit_id, input_bits))
+
+    def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
+        return self._complete(self._runner.invoke(circuit_id, input_bits))
+
+    def health(self, role: str) -> dict[str, Any]:
+        return self._complete(self._runner.health(role))
+
+    @property
+    def scheme(self) -> str:
+        """The garbling scheme of this runner's sessions."""
+        return self._runner.scheme
+
+    @property
+    def endpoints(self) -> tuple[tuple[str, int], tuple[str, int], str | Path]:
+        """(garbler address, evaluator address, TLS directory): to open more clients."""
+        r = self._runner
+        return r.garbler_addr, r.evaluator_addr, r.tls_dir
+
+    @property
+    def last(self) -> Invocation | None:
+        return self._runner.last
+
+    @property
+    def totals(self) -> dict[str, int]:
+        return self._runner.totals
+
+    @property
+    def invocations(self) -> int:
+        return self._runner.invocations
+
+    def close(self) -> None:
+        if not self._loop.is_closed():
+            with contextlib.suppress(Exception):
+                self._loop.run_until_complete(self._runner.close())
+            self._settle()
+            self._loop.close()
+
+    def __enter__(self) -> SecureRunner:
+        self._complete(self._runner.connect())
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

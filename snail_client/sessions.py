@@ -1,0 +1,98 @@
+"""What a secure invocation is made of on the client: the result of one run
+(``Invocation``), a session prepared ahead of its inputs (``Prepared``), the input bits a
+frame's invocations share (``FixedInputs``), and the links whose bytes are counted."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from snail_common.circuit.ir import Interface
+from snail_common.net.conn import parse_addr
+
+from .links import Inbox, Link
+
+LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
+         "evaluator_to_client", "garbler_to_client")
+OWNER_LINKS = ("garbler_to_mapowner", "mapowner_to_garbler")  # map-owner circuits only
+
+
+@dataclass
+class Invocation:
+    """One secure run: decoded outputs, bytes per link, wall time, server timings, how
+    many table bytes reached the evaluator before this run's inputs (garble-ahead), and
+    the input-label bytes sent when it was invoked (the rest went ahead: FixedInputs)."""
+
+    outputs: np.ndarray
+    traffic: dict[str, int]
+    wall_s: float
+    timing: dict[str, float] = field(default_factory=dict)
+    garbled_ahead: int = 0
+    labels_on_call: int = 0
+
+
+@dataclass(eq=False)
+class Prepared:
+    """A session whose garbling was requested: its secrets and both servers' inboxes."""
+
+    circuit_id: str
+    iface: Interface
+    sid: bytes
+    seed: bytes
+    delta: np.ndarray
+    garbler: Link
+    evaluator: Link
+    to_g: Inbox
+    to_e: Inbox
+    sent_g: int
+    sent_e: int
+    frame: bytes | None = None  # the map owner's frame handle, for its circuits
+    owner_bits: int = 0  # input wires (the last ones) whose labels the map owner gives
+    fixed: FixedInputs | None = None  # input bits whose labels were sent when prepared
+    # the client's label slots (two constants, one per input wire but the map owner's)
+    # still to send when invoked: those not sent with ``fixed``
+    todo: np.ndarray = field(default_factory=lambda: np.ones(0, bool))
+
+    @property
+    def usable(self) -> bool:
+        return (self.garbler.alive and self.evaluator.alive
+                and not self.to_g.failed and not self.to_e.failed)
+
+
+Address = str | tuple[str, int]
+
+
+@dataclass(frozen=True, eq=False)
+class FixedInputs:
+    """Input bits that every coming invocation of a circuit shares: ``mask`` says which
+    wires, ``bits`` their values (both bool, one per input wire)."""
+
+    mask: np.ndarray
+    bits: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.mask.dtype != np.bool_ or self.bits.dtype != np.bool_ \
+                or self.mask.shape != self.bits.shape or self.mask.ndim != 1:
+            raise ValueError("fixed inputs: mask and bits must be bool vectors of one length")
+
+    @staticmethod
+    def same(a: FixedInputs | None, b: FixedInputs | None) -> bool:
+        return a is b or (a is not None and b is not None and np.array_equal(a.mask, b.mask)
+                          and np.array_equal(a.bits, b.bits))
+
+    def matches(self, bits: np.ndarray) -> bool:
+        return bits.shape == self.bits.shape and np.array_equal(bits[self.mask],
+                                                                 self.bits[self.mask])
+
+
+def parse_address(value: Address, name: str) -> tuple[str, int]:
+    """(host, port) of ``value``; a ValueError names the address (``name``) at fault."""
+    if isinstance(value, tuple):
+        return value
+    try:
+        return parse_addr(value)
+    except ValueError as exc:
+        raise ValueError(f"{name}: {exc}") from None
+
+

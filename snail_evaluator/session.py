@@ -1,0 +1,56 @@
+"""One evaluator session: the state of an invocation from whichever half (the client's
+labels or the garbler's stream) arrives first until it is done or failed."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from snail_common.gc.stream import DEFAULT_SCHEME
+from snail_common.net.chunks import LabelAssembler
+from snail_common.net.conn import Connection
+from snail_common.net.errors import ProtocolError
+
+# largest circuit's inputs (n = 4096 points take about 10 MB), far below a memory risk
+MAX_EARLY_LABEL_BYTES = 64 << 20
+
+
+@dataclass(eq=False)
+class Session:
+    """One invocation, from whichever half arrives first until it is done or failed."""
+
+    sid: bytes
+    circuit: str
+    hash: str
+    ready: asyncio.Future  # the complete input labels, or the failure
+    client: Connection | None = None
+    garbler: bool = False
+    labels: LabelAssembler | None = None
+    failure: ProtocolError | None = None
+    started: float = field(default_factory=time.monotonic)
+    watchdog: asyncio.TimerHandle | None = None
+    peer: str = ""  # the client's certificate name, once its half has arrived
+    n_and: int = 0
+    bytes_in: int = 0
+    bytes_out: int = 0
+    queued: int = 0  # table bytes buffered while the labels are awaited
+    scheme: str = DEFAULT_SCHEME  # as both halves declared it; the stream header must agree
+    early: list[tuple[dict[str, Any], int]] = field(default_factory=list)  # labels that
+    # came while the circuit was still loading, replayed once it is
+    early_bytes: int = 0  # their wire size
+    owner: LabelAssembler | None = None  # the map owner's wires, if the circuit has any
+
+    def record(self, outcome: str, reason: str = "") -> dict:
+        """This session's log line fields (see Daemon.log_session)."""
+        return {"sid": self.sid, "circuit": self.circuit, "n_and": self.n_and,
+                "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
+                "seconds": time.monotonic() - self.started, "outcome": outcome,
+                "reason": reason}
+
+
+def consume_failure(future: asyncio.Future) -> None:
+    """Mark a failure as seen when no garbler half waits for it."""
+    if not future.cancelled():
+        future.exception()
