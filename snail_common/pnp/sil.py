@@ -23,6 +23,7 @@ from .ldlt import ldlt_solve
 from .normal import UPPER, normal_equations
 from .normal_fixed import (
     H_SHIFT,
+    H_SHIFT_SOLVE,
     W_MAP,
     W_R,
     W_RS,
@@ -135,7 +136,7 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
             return {"step": pinv_step(jac, res), "cost": cost}
     unscale = blocks = None
     if arith == "fixed":
-        hess, *sums = _fixed_sums(inputs)
+        hess, *sums = _fixed_sums(inputs, H_SHIFT_SOLVE)
         hess = with_floors(inputs["R"], hess, inputs["wfix"].v)
         hess, grad, cost, unscale = float_system(inputs["R"], hess, *sums)
         blocks = sums[-1], sums[-2]  # the map's exponent, the rotation columns' shifts
