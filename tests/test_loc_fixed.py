@@ -28,7 +28,8 @@ from snail_common.loc.preprocess import normalize
 from snail_common.loc.synthetic import random_scene
 from snail_common.loc.types import Pose
 from snail_common.pnp.do import normal_equations64
-from snail_common.pnp.fixed import SM, TC, FixCircuit, FixMirror
+from snail_common.pnp.fixed import SM, TC, FixMirror
+from snail_common.pnp.fixed_circuit import FixCircuit
 from snail_common.pnp.fops import CircuitBackend, F
 from snail_common.pnp.fops import MirrorBackend as FloatMirror
 from snail_common.pnp.normal_fixed import (
