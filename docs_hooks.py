@@ -1,5 +1,11 @@
-"""MkDocs hook (mkdocs.yml ``hooks:``): a ``mermaid`` flowchart of subgraphs drawn as HTML.
+"""MkDocs hooks (mkdocs.yml ``hooks:``): the dated notes listed in the nav by themselves, and
+a ``mermaid`` flowchart of subgraphs drawn as HTML.
 
+Notes: every ``docs/notes/*.md`` (a dated page of development history) is put under the
+nav's "Development notes", newest first, so a note needs no mkdocs.yml edit; every other
+page must be in the nav by hand (a page left out fails ``mkdocs build --strict``).
+
+Floors:
 docs/architecture.md draws the floors of the code as a mermaid flowchart, which GitHub
 renders. The site would need mermaid's JavaScript from a CDN for it (Material fetches it
 at page load), and the site loads nothing from outside itself. So at build time each
@@ -15,6 +21,7 @@ from __future__ import annotations
 import html
 import logging
 import re
+from pathlib import Path
 
 log = logging.getLogger("mkdocs.hooks.floors")
 
@@ -22,6 +29,28 @@ BLOCK = re.compile(r"^```mermaid\n(.*?)^```\n", re.S | re.M)
 SUBGRAPH = re.compile(r'^subgraph\s+(\w+)\["(.*)"\]$')
 NODE = re.compile(r'^(\w+)\["(.*)"\]$')
 EDGE = re.compile(r"^(\w+)\s*-->\s*(\w+)$")
+
+
+NOTES_SECTION = "Development notes"
+
+
+def on_config(config, **kwargs):
+    """List every docs/notes/*.md under the nav's notes section, newest (by name) first."""
+    notes_dir = Path(config["docs_dir"]) / "notes"
+    section = next((entry for entry in config["nav"] or []
+                    if isinstance(entry, dict) and NOTES_SECTION in entry), None)
+    if section is None or not notes_dir.is_dir():
+        return config
+    listed = section[NOTES_SECTION] or []
+    known = {next(iter(item.values())) if isinstance(item, dict) else item for item in listed}
+    for page in sorted(notes_dir.glob("*.md"), reverse=True):
+        path = f"notes/{page.name}"
+        if path not in known:
+            listed.append({page.stem: path})
+    section[NOTES_SECTION] = sorted(
+        listed, key=lambda item: next(iter(item.values())) if isinstance(item, dict) else item,
+        reverse=True)
+    return config
 
 
 def _parse(source: str) -> tuple[list[tuple[str, list[str]]], dict[str, str],

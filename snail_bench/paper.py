@@ -45,6 +45,8 @@ from snail_common.pnp.fops import F, MirrorBackend
 from snail_common.pnp.sil import input_shapes
 from snail_common.pnp.spec import Spec, program
 
+from .headline import provenance
+
 PAPER_RESULTS = Path(__file__).resolve().parents[2] / "shared" / "paper_results.json"
 SERVER_RATE_MBIT = 2500.0  # the paper's link between its two servers
 MIN_INVOCATIONS = 20  # a SIL localization's privacy floor (snail-client's default)
@@ -318,7 +320,7 @@ def write_paper(out: Path, plan: Plan, paper: dict, quiet: bool = True) -> Path:
             progress.set_postfix_str(name)
             progress.update(1)
 
-        results = measure_all(plan, tick)
+        results = {**measure_all(plan, tick), **provenance()}  # commit, machine: headline.py
         (out / "results.json").write_text(json.dumps(results, indent=1))
         sections = paper_plot.write_figures(json.loads(json.dumps(results)), paper, out)
         tick("figures")

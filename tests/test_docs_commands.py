@@ -38,7 +38,7 @@ MARKER = re.compile(r"<!--\s*docs-test:\s*(run(?:\s+after-install)?|skip\s+(.+?)
 INSTALL = re.compile(r"^python3 -m venv \.venv && \. \.venv/bin/activate && "
                      r"pip install -e '\.\[[a-z,]+\]' && ")
 SUITE = re.compile(r"^python -m pytest\b")
-TIMEOUT_S = 600
+TIMEOUT_S = 300  # a block waiting on a daemon that never came up fails in 5 min
 
 
 @dataclass(frozen=True)

@@ -43,3 +43,15 @@ def test_other_syntax_stays_as_code(caplog):
     markdown = "```mermaid\nsequenceDiagram\n  a->>b: hi\n```\n"
     assert on_page_markdown(markdown, _Page) == markdown
     assert "cannot read" in caplog.text
+
+
+def test_every_note_is_in_the_nav_newest_first(tmp_path: Path):
+    (tmp_path / "notes").mkdir()
+    for name in ("2026-11-26.md", "2026-11-27-net.md", "2026-11-27-docs.md"):
+        (tmp_path / "notes" / name).write_text("# a note\n")
+    nav = [{"Home": "index.md"},
+           {docs_hooks.NOTES_SECTION: [{"2026-11-26": "notes/2026-11-26.md"}]}]
+    config = docs_hooks.on_config({"docs_dir": str(tmp_path), "nav": nav})
+    assert config["nav"][0] == {"Home": "index.md"}
+    assert [next(iter(item.values())) for item in config["nav"][1][docs_hooks.NOTES_SECTION]] \
+        == ["notes/2026-11-27-net.md", "notes/2026-11-27-docs.md", "notes/2026-11-26.md"]

@@ -29,6 +29,7 @@ ARTIFACTS = ROOT / ".ci" / "artifacts"
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
                   "--disable-background-networking", "--disable-component-update",
                   "--disable-sync", "--no-first-run", "--window-size=1280,1400")
+BROWSER_OWN = ("chrome://", "chrome-untrusted://", "chrome-extension://", "devtools://")
 # page, what must be on it (a heading's text), how many images at least
 PAGES = [
     ("index.html", "private camera localization in garbled circuits", 1),
@@ -97,6 +98,7 @@ def browser(tmp_path_factory: pytest.TempPathFactory):
     options.set_capability("goog:loggingPrefs", {"performance": "ALL", "browser": "ALL"})
     driver = webdriver.Chrome(service=Service(executable_path=driver_path), options=options)
     try:
+        driver.get("about:blank")  # leave the start page before any request is counted
         yield driver
     finally:
         driver.quit()
@@ -110,18 +112,23 @@ def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
 def _network(driver) -> tuple[list[str], list[str]]:
     """(every URL requested, every failure) since the last call, from Chrome's DevTools
-    events: a request that failed to load, or answered 4xx/5xx."""
-    urls, failures = [], []
+    events: a request that failed to load, or answered 4xx/5xx. The browser's own pages
+    (chrome://, its new-tab page loading as it starts) are not the site's and are left out."""
+    urls: dict[str, str] = {}
+    failures = []
     for entry in driver.get_log("performance"):
         message = json.loads(entry["message"])["message"]
         method, params = message.get("method"), message.get("params", {})
         if method == "Network.requestWillBeSent":
-            urls.append(params["request"]["url"])
-        elif method == "Network.loadingFailed" and not params.get("canceled"):
-            failures.append(f"{params.get('errorText')} ({params.get('type')})")
+            urls[params["requestId"]] = params["request"]["url"]
+        url = urls.get(params.get("requestId"), "")
+        if url.startswith(BROWSER_OWN):
+            continue
+        if method == "Network.loadingFailed" and not params.get("canceled"):
+            failures.append(f"{params.get('errorText')} ({params.get('type')}) {url}")
         elif method == "Network.responseReceived" and params["response"]["status"] >= 400:
             failures.append(f"{params['response']['status']} {params['response']['url']}")
-    return urls, failures
+    return [u for u in urls.values() if not u.startswith(BROWSER_OWN)], failures
 
 
 @pytest.mark.parametrize(("page", "text", "min_images"), PAGES)
