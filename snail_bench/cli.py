@@ -41,6 +41,9 @@ def _emit(report: dict, as_json: bool) -> None:
 
 
 ACCURACY_TARGETS = {"lm": 0.999, "gn": 0.99}  # pass rates `accuracy` holds the loop to
+# on the hard kinds, against float64 (issue 32): LM all, GN 99.5 % (client) and 99 %
+HARD_TARGETS = {("lm", "client"): 1.0, ("lm", "circuit"): 1.0, ("gn", "client"): 0.995,
+                ("gn", "circuit"): 0.99}
 
 
 
@@ -414,8 +417,15 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
 
 @main.command()
 @click.option("--scenes", type=click.IntRange(1, 1_000_000), default=1000, show_default=True,
-              help="Random scenes per algorithm (n log-uniform in 4..256, 0.5 px noise, "
-                   "initial pose 2-10 degrees and 5-20 % off).")
+              help="Scenes per algorithm.")
+@click.option("--kind", type=click.Choice(["random", "one-tag", "plane-tags", "far-few"]),
+              default="random", show_default=True,
+              help="random: n log-uniform in 4..256, 0.5 px noise, initial pose 2-10 "
+                   "degrees and 5-20 % off, --planar-share of them on one plane; one-tag: "
+                   "the 4 corners of a 6.5 cm tag, 10-200 px a side in a 640x480 image at "
+                   "f 330-340 px, 0-70 degrees oblique, 0.1-0.5 px noise, started 5 "
+                   "degrees and 10 % off IPPE's pose; plane-tags: 2-6 such tags on one "
+                   "plane; far-few: 6-12 points 10-50 m away with 2-10 % depth spread.")
 @click.option("--algorithm", "algorithms", type=click.Choice(["lm", "gn"]), multiple=True,
               help="Algorithm to sweep; repeat for both (default: lm and gn).")
 @click.option("--solve", type=click.Choice(["client", "circuit"]), default="client",
@@ -428,12 +438,15 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
               help="Sweep seed: scene k of a seed is the same on every run.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.pass_context
-def accuracy(ctx: click.Context, scenes: int, algorithms: tuple[str, ...], solve: str,
-             arith: str | None, planar_share: float, seed: int, as_json: bool) -> None:
+def accuracy(ctx: click.Context, scenes: int, kind: str, algorithms: tuple[str, ...],
+             solve: str, arith: str | None, planar_share: float, seed: int,
+             as_json: bool) -> None:
     """How often the client's LM/GN loop, on the circuits' bit-exact float32 mirror, ends
-    within max(0.01 px, 0.5 %) of the reprojection RMS of OpenCV's iterative solvePnP from
-    the same initial pose; lists every scene that does not. Exit 1 below 99.9 % (LM) or
-    99 % (GN)."""
+    within max(0.01 px, 0.5 %) of the reprojection RMS of OpenCV's iterative solvePnP, and
+    of the same loop in float64, from the same initial pose; lists every scene that does
+    not. Exit 1 below 99.9 % (LM) or 99 % (GN) against OpenCV on random scenes; on the
+    other kinds, against float64, below all (LM) or 99.5 % (GN; 99 % with --solve
+    circuit)."""
     from snail_client.progress import bar
 
     from .accuracy import sweep
@@ -443,17 +456,24 @@ def accuracy(ctx: click.Context, scenes: int, algorithms: tuple[str, ...], solve
     quiet = bool(ctx.obj and ctx.obj.get("quiet"))
     with bar(scenes * len(algorithms), "accuracy", quiet, "scene") as progress:
         for algorithm in algorithms:
-            report[algorithm] = sweep(scenes, algorithm, seed, planar_share, solve, arith,
-                                      lambda: progress.update(1))
-            if report[algorithm]["pass_rate"] < ACCURACY_TARGETS[algorithm]:
+            row = sweep(scenes, algorithm, seed, planar_share, solve, arith,
+                        lambda: progress.update(1), kind)
+            report[algorithm] = row
+            rate, target = ((row["pass_rate"], ACCURACY_TARGETS[algorithm]) if kind == "random"
+                            else (row["pass_rate_float64"], HARD_TARGETS[algorithm, solve]))
+            if rate < target:
                 short.append(algorithm)
     if as_json:
         click.echo(json.dumps({"accuracy": report}))
     for algorithm, row in ({} if as_json else report).items():
         kinds = ", ".join(f"{k} {v['passed']}/{v['scenes']}"
                           for k, v in row["passed_by_kind"].items())
-        click.echo(f"{algorithm}: {row['passed']}/{row['scenes']} within OpenCV's RMS + "
-                   f"max(0.01 px, 0.5 %) ({kinds}); iterations mean "
+        click.echo(f"{algorithm} ({kind}, {row['solve']} solve): {row['passed']}/"
+                   f"{row['scenes']} within OpenCV's RMS + max(0.01 px, 0.5 %) ({kinds}), "
+                   f"{row['passed_float64']}/{row['scenes']} within float64's (float64: "
+                   f"{row['float64']['passed']} within OpenCV's, iterations mean "
+                   f"{row['float64']['iterations']['mean']:g}, max "
+                   f"{row['float64']['iterations']['max']}); iterations mean "
                    f"{row['iterations']['mean']:g}, max {row['iterations']['max']}; "
                    f"invocations mean {row['invocations']['mean']:g}, max "
                    f"{row['invocations']['max']}; not converged: "
@@ -461,8 +481,9 @@ def accuracy(ctx: click.Context, scenes: int, algorithms: tuple[str, ...], solve
         for f in row["failures"]:
             note = "" if f["converged"] else " (not converged)"
             click.echo(f"  scene {f['scene']}: n={f['n']}{' planar' if f['planar'] else ''}"
-                       f", {f['rms_px']} px vs OpenCV {f['rms_opencv_px']} px after "
-                       f"{f['iterations']} iterations{note}")
+                       f", {f['rms_px']} px vs OpenCV {f['rms_opencv_px']} px, float64 "
+                       f"{f['rms_float64_px']} px after {f['iterations']} iterations "
+                       f"(float64 {f['float64_iterations']}){note}")
     if short:
         sys.exit(1)
 

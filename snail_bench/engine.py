@@ -54,7 +54,9 @@ _LEN = struct.Struct("<I")
 def engine_report(wide_layers: int = WIDE_LAYERS, deep_layers: int = DEEP_LAYERS,
                   schemes: tuple[str, ...] = tuple(SCHEMES)) -> dict:
     """Measure AES, garble, evaluate, per-step overhead, end-to-end rates and stream bytes
-    per AND of each scheme (one run)."""
+    per AND of each scheme (one run); ``schemes`` is any iterable of names (SCHEMES
+    itself: every scheme)."""
+    schemes = tuple(schemes)
     if not schemes or any(s not in SCHEMES for s in schemes):
         raise ValueError(f"schemes must be some of {', '.join(SCHEMES)}, got {schemes}")
     load = os.getloadavg()[0]  # other work on the machine: context for every rate below
