@@ -101,6 +101,11 @@ class SecureRunner:
     def invocations(self) -> int:
         return self._runner.invocations
 
+    @property
+    def retries(self) -> int:
+        """Invocations run again on another replica after a retryable failure."""
+        return self._runner.retries
+
     def close(self) -> None:
         if not self._loop.is_closed():
             with contextlib.suppress(Exception):

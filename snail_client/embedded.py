@@ -142,6 +142,7 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
             for i, map_path in enumerate(maps):
                 started.append(start_daemon("mapd", [
                     "--map", str(map_path), "--tls-dir", str(tls_dir),
+                    "--evaluator", evaluator.address,
                     "--log-level", MAP_OWNER_LOG_LEVEL], root / f"mapd{i}.log", env=env))
             owners = tuple(started[1:])
             allowed = [arg for owner in owners for arg in ("--map-owner", owner.address)]

@@ -131,11 +131,20 @@ def localize(problem: Problem, options: Options, backend: Backend,
     if reason is not None and start is not None:
         return _degenerate_record(problem, options, start, reason)
     before, schemes = backend.traffic(), Counter(getattr(backend, "schemes", {}))
+    retried = _retries(backend)
     result = run_pipeline(problem, options, backend, initial)
     after = backend.traffic()
     schemes = Counter(getattr(backend, "schemes", {})) - schemes
-    return record(result, options, {link: after.get(link, 0) - before.get(link, 0)
-                                    for link in LINKS}, problem, schemes)
+    out = record(result, options, {link: after.get(link, 0) - before.get(link, 0)
+                                   for link in LINKS}, problem, schemes)
+    if isinstance(backend, GarbledBackend):
+        out["retries"] = _retries(backend) - retried
+    return out
+
+
+def _retries(backend: Backend) -> int:
+    """Secure runs the garbled backend ran again on another replica (0 for the others)."""
+    return backend.secure.retries if isinstance(backend, GarbledBackend) else 0
 
 
 def record(result: Localized, options: Options, traffic: dict[str, int],

@@ -41,7 +41,7 @@ from snail_common.gc.stream import (
 )
 from snail_common.net import messages
 from snail_common.net.chunks import write_labels
-from snail_common.net.conn import Connection, connect
+from snail_common.net.conn import Connection, connect, format_addr
 from snail_common.net.errors import (
     ABORTED,
     BAD_REQUEST,
@@ -57,6 +57,7 @@ from snail_common.net.errors import (
 from snail_common.net.linkrates import LinkRates
 from snail_common.net.logs import event
 from snail_common.net.metrics import OK
+from snail_common.net.replicas import Address, Replicas
 from snail_common.net.service import Daemon, Options
 from snail_common.net.tcpinfo import link_advice
 from snail_common.net.tcpinfo import read as tcp_info
@@ -100,15 +101,15 @@ class GarblerDaemon(Daemon):
     gone_event = "client_gone"
 
     def __init__(self, options: Options, logger: logging.Logger,
-                 evaluator: tuple[str, int], client_ctx,
-                 map_owners: tuple[tuple[str, int], ...]) -> None:
+                 evaluators: tuple[Address, ...], client_ctx,
+                 map_owners: tuple[Address, ...]) -> None:
         super().__init__(options, logger)
-        self.evaluator = evaluator
+        # the only evaluators this garbler dials: what its operator's names resolve to
+        self.evaluators = Replicas(evaluators, "--evaluator", "evaluator")
         self.client_ctx = client_ctx  # TLS context for the link to the evaluator
-        self.idle: list[Connection] = []
+        self.idle: dict[Address, list[Connection]] = {}  # pooled, per evaluator replica
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
-        self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout,
-                                  map_owners)
+        self.owners = OwnerInputs(client_ctx, options.handshake_timeout, map_owners)
         self.rates = LinkRates()  # garbling rates and the server link, measured
         self.advised = False  # tcp_advice logged
 
@@ -164,24 +165,27 @@ class GarblerDaemon(Daemon):
                 check_delta(req["delta"])
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
-            owner = await self.owners.feed(req, circuit, self.options.session_timeout)
-            scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
-            record["scheme"] = req.get("scheme", DEFAULT_SCHEME)
-            block, frame = frame_plan(schedule, scheme)
-            garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
-                                             req["delta"], req["key"], block, frame)
-                       if scheme == SCHEME_HALF_GATES else None)  # lanes are half-gates
-            running = True
-            if garbler is None:
-                make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
-                                         req["key"], block_gates=block, frame_bytes=frame,
-                                         scheme=scheme)
-                # deriving the input labels is AES over the inputs: inline unless large
-                garbler = (make() if schedule.n_inputs < INLINE_INPUTS
-                           else await self.work(make))
-            t_ready = time.monotonic()
-            evaluator = await self._acquire()
+            # the replica the client talks to, if the operator's names reach it
+            where, evaluator = await self._acquire(req)
             try:
+                owner = await self.owners.feed(req, circuit, self.options.session_timeout,
+                                               (format_addr(*where),
+                                                evaluator.info.get("instance")))
+                scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
+                record["scheme"] = req.get("scheme", DEFAULT_SCHEME)
+                block, frame = frame_plan(schedule, scheme)
+                garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
+                                                 req["delta"], req["key"], block, frame)
+                           if scheme == SCHEME_HALF_GATES else None)  # lanes: half-gates
+                running = True
+                if garbler is None:
+                    make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
+                                             req["key"], block_gates=block,
+                                             frame_bytes=frame, scheme=scheme)
+                    # deriving the input labels is AES over the inputs: inline unless large
+                    garbler = (make() if schedule.n_inputs < INLINE_INPUTS
+                               else await self.work(make))
+                t_ready = time.monotonic()
                 self.counters["streaming"] += 1
                 try:
                     sent, answered, timeline = await self._stream(evaluator, garbler, req)
@@ -208,7 +212,7 @@ class GarblerDaemon(Daemon):
             except BaseException:
                 evaluator.abort()
                 raise
-            self._release(evaluator)
+            self._release(where, evaluator)
             if replied:
                 with contextlib.suppress(ConnectionClosed):
                     await client.drain()
@@ -321,26 +325,37 @@ class GarblerDaemon(Daemon):
         if msg["sid"] != sid:
             raise ProtocolError(UNEXPECTED, "the evaluator finished another session")
 
-    async def _acquire(self) -> Connection:
-        while self.idle:
-            conn = self.idle.pop()
+    async def _acquire(self, req: dict[str, Any]) -> tuple[Address, Connection]:
+        """A connection to the evaluator replica the request names (snail_common.net.
+        replicas: forbidden outside this garbler's --evaluator names)."""
+        return await self.evaluators.locate(req.get("evaluator"), req.get("evaluator_id"),
+                                            "evaluator", self._take, self._release)
+
+    async def _take(self, addr: Address) -> Connection:
+        """A pooled idle connection to the replica at ``addr``, else a new one."""
+        pool = self.idle.get(addr, [])
+        while pool:
+            conn = pool.pop()
             if conn.idle:
                 return conn
             await conn.close()  # something arrived while idle (a bye): not reusable
-        return await connect(*self.evaluator, self.client_ctx, "garbler", "evaluator",
-                             self.options.handshake_timeout)
+        return await connect(*addr, self.client_ctx, "garbler", "evaluator",
+                             self.options.handshake_timeout,
+                             server_name=self.evaluators.server_name(addr))
 
-    def _release(self, conn: Connection) -> None:
-        if conn.idle and len(self.idle) < MAX_IDLE and not self.stopping.is_set():
-            self.idle.append(conn)
+    def _release(self, addr: Address, conn: Connection) -> None:
+        pool = self.idle.setdefault(addr, [])
+        if conn.idle and len(pool) < MAX_IDLE and not self.stopping.is_set():
+            pool.append(conn)
         else:
             conn.abort()
 
     async def shutdown_extra(self) -> None:
         await self.owners.close()
-        await asyncio.gather(*(c.close(messages.make("bye")) for c in self.idle),
-                             return_exceptions=True)
+        idle = [conn for pool in self.idle.values() for conn in pool]
         self.idle.clear()
+        await asyncio.gather(*(c.close(messages.make("bye")) for c in idle),
+                             return_exceptions=True)
 
 
 def _timed_next(frames: Iterator[bytes], clock: dict[str, float]) -> bytes | None:

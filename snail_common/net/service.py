@@ -32,6 +32,7 @@ from .conn import SOFTWARE, Connection
 from .errors import (
     BUSY,
     CIRCUIT_MISMATCH,
+    DRAINING,
     TIMEOUT,
     TOO_LARGE,
     UNEXPECTED,
@@ -77,7 +78,8 @@ class Daemon(Listener):
         return messages.make("capabilities", role=self.role, software=SOFTWARE,
                              max_frame=MAX_FRAME, families=list(registry.families()),
                              max_sessions=self.options.max_sessions,
-                             max_and_gates=self.options.max_and_gates)
+                             max_and_gates=self.options.max_and_gates,
+                             instance=self.instance)
 
     def health(self) -> dict[str, Any]:
         return messages.make("health", role=self.role, sessions=self.metrics.health(),
@@ -142,10 +144,12 @@ class Daemon(Listener):
         raise ProtocolError(UNEXPECTED, refusal.format(kind))
 
     def admit(self, peer: str = "") -> None:
-        """Count a new session (of client ``peer``, if known), or refuse it as busy when
-        the daemon is full or stopping, or the peer holds its quota."""
+        """Count a new session (of client ``peer``, if known), or refuse it: as draining
+        when the daemon is stopping (SIGTERM: the client retries on another replica), as
+        busy when it is full or the peer holds its quota."""
         if self.stopping.is_set():
-            raise ProtocolError(BUSY, f"the {self.role} is shutting down")
+            raise ProtocolError(DRAINING, f"the {self.role} is draining (stopping): it "
+                                          f"finishes its sessions and takes no new one")
         if self.counters["active"] >= self.options.max_sessions:
             raise ProtocolError(BUSY, f"the {self.role} runs its maximum of "
                                       f"{self.options.max_sessions} sessions")
