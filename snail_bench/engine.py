@@ -70,8 +70,10 @@ def engine_report(wide_layers: int = WIDE_LAYERS, deep_layers: int = DEEP_LAYERS
                   schemes: tuple[str, ...] = tuple(SCHEMES),
                   engine_names: tuple[str, ...] | None = None) -> dict:
     """Measure AES, garble, evaluate, per-step overhead, end-to-end rates and stream bytes
-    per AND of each scheme on each engine (one run). ValueError for an unknown scheme or
-    engine; NativeUnavailable when the native kernel is asked for and cannot run."""
+    per AND of each scheme on each engine (one run); ``schemes`` is any iterable of names
+    (SCHEMES itself: every scheme). ValueError for an unknown scheme or engine;
+    NativeUnavailable when the native kernel is asked for and cannot run."""
+    schemes = tuple(schemes)
     if not schemes or any(s not in SCHEMES for s in schemes):
         raise ValueError(f"schemes must be some of {', '.join(SCHEMES)}, got {schemes}")
     names = tuple(dict.fromkeys(engine_names or available_engines()))

@@ -38,11 +38,11 @@ from snail_client.localize import GarbledBackend, Options
 from snail_client.mapowner import MapOwnerLink
 from snail_client.owner_localize import run_frame
 from snail_common.circuit import registry
-from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.loc.backends import CircuitBackend
 from snail_common.loc.mapfile import Frame, MapPoints
 from snail_common.loc.owner import localize_known, owner_values
 from snail_common.loc.synthetic import random_scene
+from snail_common.net.linkrates import AUTO
 from snail_common.pnp.spec import Spec
 
 from .service import _measure
@@ -174,7 +174,7 @@ def map_owner_row(runner, tls_dir: Path, daemon: Daemon, frame: Frame, points: M
 
 
 def map_owner_report(points: tuple[int, ...], map_points: tuple[int, ...], repeat: int,
-                     scheme: str = DEFAULT_SCHEME, lanes: tuple[str, ...] = ()) -> dict:
+                     scheme: str = AUTO, lanes: tuple[str, ...] = ()) -> dict:
     """``{"service": {plain id: row}, "map_owner": {mo id: {str(M): row}}}`` on embedded
     daemons (the map owners need certificates from the same throwaway CA, and the garbler
     their addresses at its start: every map is made before the servers start)."""
@@ -191,7 +191,7 @@ def map_owner_report(points: tuple[int, ...], map_points: tuple[int, ...], repea
             owners = dict(zip(scenes, services.map_owners))
             for n in points:
                 spec = Spec("lm", "sil", options.solver, n, arith=options.arith_used)
-                row = {**_measure(runner, spec, repeat), "scheme": scheme}
+                row = _measure(runner, spec, repeat)  # with the schemes its sessions used
                 service[spec.circuit_id] = row
                 plain = {"circuit": spec.circuit_id, "and": row["and"],
                          "median_s": row["median_s"]}

@@ -51,6 +51,7 @@ PAPER_RESULTS = Path(__file__).resolve().parents[2] / "shared" / "paper_results.
 SERVER_RATE_MBIT = 2500.0  # the paper's link between its two servers
 MIN_INVOCATIONS = 20  # a SIL localization's privacy floor (snail-client's default)
 LATENCY_DELAYS_MS = (0.0, 5.0, 20.0, 50.0)
+PROFILE_REPEAT = 3  # localizations per network profile and n, after one to warm up
 MICRO_OPS = 10_000  # the paper's micro-benchmark size
 
 
@@ -64,6 +65,7 @@ class Plan:
     algorithms: tuple[str, ...]
     repeat: int
     micro_lanes: int  # operations per garbled micro-benchmark circuit
+    profile_points: tuple[int, ...] = (6, 12, 64)  # a localization per network profile
 
     def expected_minutes(self) -> float:
         """A rough forecast on 2 cores with a cold circuit cache: a DO circuit compiles in
@@ -77,11 +79,13 @@ class Plan:
         run_s = runs * (0.15 + 0.005 * mean_n)
         do_s = len(self.do_points) * 140
         latency_s = 7 * 12
-        return round((sil_s + run_s + do_s + latency_s) / 60 + 1, 1)
+        # per profile: a lab, links measured, and per n 1 + PROFILE_REPEAT localizations
+        profiles_s = 4 * (15 + len(self.profile_points) * (1 + PROFILE_REPEAT) * 8)
+        return round((sil_s + run_s + do_s + latency_s + profiles_s) / 60 + 1, 1)
 
 
 QUICK = Plan(totals_points=(6, 12), do_points=(), sweep_points=(6, 56), algorithms=("lm",),
-             repeat=3, micro_lanes=500)
+             repeat=3, micro_lanes=500, profile_points=(6, 12))
 FULL = Plan(totals_points=tuple(range(6, 13)), do_points=tuple(range(6, 13)),
             sweep_points=(6, 56, 106, 156, 206, 256), algorithms=("lm", "gn"), repeat=5,
             micro_lanes=1000)
@@ -122,6 +126,8 @@ def measure_all(plan: Plan, tick: Callable[[str], object] = lambda _: None) -> d
     tick("sweep")
     results["latency"] = latency_sweep(plan.repeat)
     tick("latency")
+    results["profiles"] = profiles(plan.profile_points)
+    tick("profiles")
     results["finished"] = time.strftime("%Y-%m-%d %H:%M:%S")
     return results
 
@@ -168,8 +174,9 @@ def sweep(plan: Plan) -> dict:
     phases = [(f"{d:g}ms", {"garbler_evaluator": Shape(d, rate_mbit=SERVER_RATE_MBIT)})
               for d in (0.0, 5.0)]
     try:
-        tcp, phase_rows = run_phases(_unique(specs), plan.repeat, phases)
-        lab: str | dict = {"tcp": tcp, "links": {k: v["links"] for k, v in phase_rows.items()}}
+        tcp, shaper, phase_rows = run_phases(_unique(specs), plan.repeat, phases)
+        lab: str | dict = {"tcp": tcp, **shaper,
+                           "links": {k: v["links"] for k, v in phase_rows.items()}}
         rows = {name: row["service"] for name, row in phase_rows.items()}
     except LabUnavailable as exc:
         lab = f"unavailable: {exc}; 0 ms measured on loopback, 5 ms not measured"
@@ -187,11 +194,12 @@ def sweep(plan: Plan) -> dict:
 def latency_sweep(repeat: int) -> dict:
     """n = 6 LM per iteration vs one-way delay on each link class; round trips read off
     the slope (least squares over the delays; a round trip costs 2 delays)."""
-    from .netem import run_phases
+    from .netem import Phase, run_phases
     from .netlab.namespaces import LabUnavailable, Shape
 
     client = ("client_garbler", "client_evaluator")
-    phases = [("server_0ms", {})]
+    # 0 ms through the forwarder too (a control run), so the slope is the delay's alone
+    phases: list = [Phase("server_0ms", control=True)]
     phases += [(f"server_{d:g}ms", {"garbler_evaluator": Shape(d)})
                for d in LATENCY_DELAYS_MS[1:]]
     phases += [(f"client_{d:g}ms", {link: Shape(d) for link in client})
@@ -200,10 +208,10 @@ def latency_sweep(repeat: int) -> dict:
         # the kernel's own TCP, as users get it: the client's links run cubic from their
         # first packet (net/conn.py), so a burst of labels takes one round trip
         spec = sil_spec("lm", 6)
-        tcp, rows = run_phases([spec], max(repeat, 5), phases)
+        tcp, shaper, rows = run_phases([spec], max(repeat, 5), phases)
     except LabUnavailable as exc:
         return {"lab": f"unavailable: {exc}"}
-    out: dict = {"tcp": tcp, "delays_ms": list(LATENCY_DELAYS_MS)}
+    out: dict = {"tcp": tcp, **shaper, "delays_ms": list(LATENCY_DELAYS_MS)}
     for side in ("server", "client"):
         names = ["server_0ms"] + [f"{side}_{d:g}ms" for d in LATENCY_DELAYS_MS[1:]]
         per_it = [rows[name]["service"][spec.circuit_id]["median_s"] for name in names]
@@ -217,6 +225,29 @@ def latency_sweep(repeat: int) -> dict:
                      "measured_rtt_ms": rtt,
                      "round_trips": round(slope / 2, 2),
                      "round_trips_beyond_evaluate": round(slope_beyond / 2, 2)}
+    return out
+
+
+def profiles(points: tuple[int, ...]) -> dict:
+    """A padded LM localization at each of ``points`` under each network profile
+    (``snail-bench netem --profile NAME --localize``): its wall time against the bound
+    its links set. ``{profile: {"links", "shaper", "forwarder", "localization": {n:
+    {...}}}}``, or ``{"lab": "unavailable: ..."}`` without the network lab."""
+    from .netem import Phase, run_phases
+    from .netlab.namespaces import LabUnavailable
+    from .netlab.profiles import PROFILES, profile_shapes
+
+    specs = [sil_spec("lm", n) for n in points]
+    out: dict = {"points": list(points), "repeat": PROFILE_REPEAT}
+    try:
+        for name in PROFILES:
+            _, shaper, rows = run_phases(specs, 1, [Phase(name, profile_shapes(name))],
+                                         localize=PROFILE_REPEAT)
+            row = rows[name]
+            out[name] = {"links": row["links"], **shaper, "localization": {
+                str(spec.points): row["localization"][spec.circuit_id] for spec in specs}}
+    except LabUnavailable as exc:
+        return {"lab": f"unavailable: {exc}"}
     return out
 
 
@@ -315,7 +346,7 @@ def write_paper(out: Path, plan: Plan, paper: dict, quiet: bool = True) -> Path:
 
     paper_plot._pyplot()  # ImportError now, not after the measurements
     out.mkdir(parents=True, exist_ok=True)
-    with bar(7, "paper", quiet, "step") as progress:
+    with bar(8, "paper", quiet, "step") as progress:
         def tick(name: str) -> None:
             progress.set_postfix_str(name)
             progress.update(1)

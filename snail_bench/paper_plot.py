@@ -13,6 +13,28 @@ import numpy as np
 
 PAPER_STYLE = {"linestyle": "--", "marker": "s", "alpha": 0.8}
 OURS_STYLE = {"linestyle": "-", "marker": "o"}
+# series that may coincide (ours LM and GN per iteration differ by a few AND gates) each
+# get their own line style and an unfilled marker of their own shape, so one drawn over
+# another still shows both; the colour tells the delay apart too
+_LINES = {("paper", "lm"): "--", ("paper", "gn"): "-.", ("ours", "lm"): "-",
+          ("ours", "gn"): ":"}
+_MARKERS = {("paper", "lm", "0ms"): "s", ("paper", "gn", "0ms"): "D",
+            ("paper", "lm", "5ms"): "v", ("paper", "gn", "5ms"): "*",
+            ("ours", "lm", "0ms"): "o", ("ours", "gn", "0ms"): "x",
+            ("ours", "lm", "5ms"): "^", ("ours", "gn", "5ms"): "+"}
+_COLORS = {"": "C0", "0ms": "C0", "5ms": "C3"}
+
+
+def series_style(source: str, alg: str, phase: str = "") -> dict:
+    """Line style, marker and colour of one series: unique per (source, algorithm,
+    delay), markers unfilled and GN's drawn above LM's."""
+    color = _COLORS[phase] if source == "ours" else {"0ms": "C7", "5ms": "C1", "": "C7"}[
+        phase]
+    marker = _MARKERS[source, alg, phase or "0ms"]
+    return {"linestyle": _LINES[source, alg], "marker": marker,
+            "markersize": 9 if alg == "lm" else 7, "markerfacecolor": "none",
+            "markeredgewidth": 1.5, "color": color, "zorder": 3 if alg == "gn" else 2,
+            "alpha": 0.8 if source == "paper" else 1.0}
 
 
 def _pyplot():
@@ -47,7 +69,8 @@ def write_figures(results: dict, paper: dict, out: Path) -> list[str]:
     plt = _pyplot()
     sections = [_sil_vs_do(plt, results, paper, out), _per_iteration(plt, results, paper, out),
                 _bytes(plt, results, paper, out), _ops(plt, results, paper, out),
-                _micro(plt, results, paper, out), _latency(plt, results, out)]
+                _micro(plt, results, paper, out), _latency(plt, results, out),
+                _profiles(plt, results, out)]
     return [s for s in sections if s]
 
 
@@ -62,18 +85,19 @@ def _sil_vs_do(plt, results: dict, paper: dict, out: Path) -> str:
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for alg in ("lm", "gn"):
         ax.plot(ref["n"], ref[f"{alg}_sil_total_s"], label=f"paper SIL {alg.upper()}",
-                **PAPER_STYLE)
+                **series_style("paper", alg, "0ms"))
         ax.plot(ref["n"], ref[f"{alg}_do_total_s"], label=f"paper DO {alg.upper()}",
-                **PAPER_STYLE)
+                **series_style("paper", alg, "5ms"))
     sil = results["totals"]["sil"].values()
     do = results["totals"]["do"].values()
     for alg in ("lm", "gn"):
         mine = sorted((r["n"], r["total_s"]) for r in sil if r["algorithm"] == alg)
         if mine:
-            ax.plot(*zip(*mine), label=f"ours SIL {alg.upper()}", **OURS_STYLE)
+            ax.plot(*zip(*mine), label=f"ours SIL {alg.upper()}",
+                    **series_style("ours", alg, "0ms"))
     mine_do = sorted((r["n"], r["total_s"]) for r in do)
     if mine_do:
-        ax.plot(*zip(*mine_do), label="ours DO LM", **OURS_STYLE)
+        ax.plot(*zip(*mine_do), label="ours DO LM", **series_style("ours", "lm", "5ms"))
     ax.set(yscale="log", xlabel="points n", ylabel="one localization (s, log)",
            title="SIL (>= 20 invocations) vs data-oblivious (one circuit)")
     ax.legend(fontsize=8)
@@ -105,11 +129,11 @@ def _per_iteration(plt, results: dict, paper: dict, out: Path) -> str:
         ref = paper[key]
         for alg in ("lm", "gn"):
             ax.plot(ref["n"], ref[f"{alg}_s_per_iteration"],
-                    label=f"paper {alg.upper()} {phase}", **PAPER_STYLE)
+                    label=f"paper {alg.upper()} {phase}", **series_style("paper", alg, phase))
             mine = _series(results).get(f"{alg}_{phase}", [])
             if mine:
                 ax.plot([r["n"] for r in mine], [r["per_iteration_s"] for r in mine],
-                        label=f"ours {alg.upper()} {phase}", **OURS_STYLE)
+                        label=f"ours {alg.upper()} {phase}", **series_style("ours", alg, phase))
             for r in mine:
                 p = _at(ref["n"], ref[f"{alg}_s_per_iteration"], r["n"])
                 rows.append([alg.upper(), phase, str(r["n"]), _fmt(p),
@@ -130,11 +154,11 @@ def _bytes(plt, results: dict, paper: dict, out: Path) -> str:
     rows = []
     for alg in ("lm", "gn"):
         ax.plot(ref["n"], ref[f"{alg}_bytes_per_iteration"], label=f"paper {alg.upper()}",
-                **PAPER_STYLE)
+                **series_style("paper", alg))
         mine = _series(results).get(f"{alg}_0ms", [])
         if mine:
             ax.plot([r["n"] for r in mine], [r["bytes"] for r in mine],
-                    label=f"ours {alg.upper()}", **OURS_STYLE)
+                    label=f"ours {alg.upper()}", **series_style("ours", alg))
         for r in mine:
             p = _at(ref["n"], ref[f"{alg}_bytes_per_iteration"], r["n"])
             rows.append([alg.upper(), str(r["n"]), _fmt(p), _fmt(r["bytes"]),
@@ -224,3 +248,47 @@ def _latency(plt, results: dict, out: Path) -> str:
             + _table(["delayed link", "round trips (wall)", "round trips (beyond evaluation)",
                       "s/iteration at " + " / ".join(f"{d:g}" for d in delays) + " ms"],
                      rows))
+
+
+PROFILE_MARKERS = {"lan": ("o", "C0"), "paper": ("s", "C1"), "region": ("^", "C2"),
+                   "continent": ("D", "C3")}
+
+
+def _profiles(plt, results: dict, out: Path) -> str:
+    """Wall time of a padded localization per network profile against its links' bound
+    (``snail-bench netem --profile NAME --localize``)."""
+    prof = results.get("profiles", {})
+    names = [name for name in PROFILE_MARKERS if name in prof]
+    if not names:
+        return f"## Network profiles\n\nNot measured: {prof.get('lab', 'no lab')}"
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    rows, edges = [], []
+    for name in names:
+        marker, color = PROFILE_MARKERS[name]
+        locs = sorted(prof[name]["localization"].items(), key=lambda kv: int(kv[0]))
+        bounds = [loc["link_bound_s"] for _, loc in locs]
+        walls = [loc["wall_s"] for _, loc in locs]
+        edges += bounds + walls
+        ax.plot(bounds, walls, linestyle="none", marker=marker, color=color,
+                markerfacecolor="none", markersize=9, markeredgewidth=1.5, label=name)
+        for (n, loc), x, y in zip(locs, bounds, walls):
+            ax.annotate(f"n={n}", (x, y), textcoords="offset points", xytext=(6, 4),
+                        fontsize=7, color=color)
+            rows.append([name, n, str(loc["invocations"]),
+                         f"{loc['bytes']['garbler_to_evaluator'] / 1e6:.1f}",
+                         f"{loc['link_bound_s']:.3f}", f"{loc['wall_s']:.3f}",
+                         f"{loc['bound_ratio']:.2f}"])
+    lo, hi = min(edges) / 1.5, max(edges) * 1.5
+    ax.plot([lo, hi], [lo, hi], color="0.4", linewidth=1, label="the links' bound")
+    ax.plot([lo, hi], [1.3 * lo, 1.3 * hi], color="0.4", linewidth=1, linestyle="--",
+            label="1.3 x the bound")
+    ax.set(xscale="log", yscale="log", xlabel="bound set by the links alone (s, log)",
+           ylabel="padded localization, wall (s, log)",
+           title="One localization (20 invocations, LM) per network profile")
+    ax.legend(fontsize=8)
+    _save(plt, fig, out, "profiles.png")
+    return ("## Network profiles: a localization against its links' bound\n\n"
+            "![](profiles.png)\n\nThe bound is max(garbler -> evaluator bytes / the "
+            "measured server rate, invocations x the measured client round trip).\n\n"
+            + _table(["profile", "n", "invocations", "MB garbler->evaluator", "bound (s)",
+                      "wall (s)", "wall / bound"], rows))

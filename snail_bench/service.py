@@ -31,8 +31,8 @@ from snail_client.secure import AsyncSecureRunner
 from snail_client.sessions import FixedInputs, Invocation
 from snail_common.circuit import registry
 from snail_common.circuit.ir import Interface
-from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.loc.backends import frame_wires
+from snail_common.net.linkrates import AUTO
 from snail_common.pnp.spec import Spec
 
 
@@ -41,7 +41,7 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
                    clients: int = 1, lane_window_ms: float | None = None,
                    quiet: bool = True,
                    on_done: Callable[[str, dict], object] | None = None,
-                   scheme: str = DEFAULT_SCHEME) -> dict:
+                   scheme: str = AUTO) -> dict:
     """``{"service": {circuit_id: {...}}}``: per circuit, the first run and ``repeat``
     warm runs (median, min, max wall seconds), bytes per link and server timings of one
     run, and (embedded daemons only) each server's peak RSS so far: a high-water mark
@@ -51,7 +51,7 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
     with connected(garbler, evaluator, tls_dir, lanes, scheme=scheme) as (runner, services), \
             bar(len(specs), "circuits", quiet, "circuit") as progress:
         for spec in specs:
-            report[spec.circuit_id] = {**_measure(runner, spec, repeat), "scheme": scheme}
+            report[spec.circuit_id] = _measure(runner, spec, repeat)
             if clients > 1:
                 report[spec.circuit_id].update(_fleet(runner, spec, repeat, clients))
             if services is not None:
@@ -77,14 +77,45 @@ def _measure(runner: SecureRunner, spec: Spec, repeat: int) -> dict:
     warm = [once() for _ in range(repeat)]
     walls = [run.wall_s for run in warm]
     # what the network and the protocol add to the evaluator's own work (client round
-    # trip, tables not yet there): steadier than wall time on a machine shared with others
-    beyond = [run.wall_s - run.timing.get("evaluator_evaluate_s", 0.0) for run in warm]
+    # trip, tables not yet there): its evaluation less its wait for table frames, so the
+    # server link's share stays in; steadier than wall time on a shared machine
+    waits = [run.timing.get("evaluator_wait_s", 0.0) for run in warm]
+    beyond = [run.wall_s - run.timing.get("evaluator_evaluate_s", 0.0) + wait
+              for run, wait in zip(warm, waits)]
+    schemes = sorted({run.scheme for run in warm})
+    timeline = _timeline(warm)
     return {"and": iface.counts["and"], "depth": iface.depth, "first_s": round(first.wall_s, 4),
             "median_s": round(statistics.median(walls), 4), "min_s": round(min(walls), 4),
             "max_s": round(max(walls), 4), "repeat": repeat,
             "median_beyond_evaluate_s": round(statistics.median(beyond), 4),
+            "evaluator_wait_s": round(statistics.median(waits), 4),
+            "scheme": schemes[0] if len(schemes) == 1 else "+".join(schemes),
+            **({"timeline_ms": timeline} if timeline else {}),
             "traffic": warm[-1].traffic,
             "timing": {k: round(v, 4) for k, v in warm[-1].timing.items()}}
+
+
+# a session's events in the daemons' timelines, in the order they should happen
+TIMELINE = (("garbler_t_first_sent", "first table sent"),
+            ("evaluator_t_first_received", "first table received"),
+            ("garbler_t_garbled", "last table garbled"),
+            ("garbler_t_last_sent", "last table sent"),
+            ("evaluator_t_last_received", "last table received"),
+            ("evaluator_t_labels", "client's labels in"),
+            ("evaluator_t_eval_end", "evaluation done"))
+
+
+def _timeline(runs: list[Invocation]) -> dict[str, float]:
+    """Median milliseconds from the garbler's receipt of each session's request to each
+    event of its timeline (both daemons' clocks: one host here, synchronized across
+    hosts), over ``runs``: where a session's time went."""
+    out = {}
+    for key, name in TIMELINE:
+        offsets = [run.timing[key] - run.timing["garbler_t_request"] for run in runs
+                   if key in run.timing and "garbler_t_request" in run.timing]
+        if offsets:
+            out[name] = round(statistics.median(offsets) * 1000, 2)
+    return out
 
 
 def _fleet(runner: SecureRunner, spec: Spec, repeat: int, clients: int) -> dict:

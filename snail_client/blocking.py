@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net.conn import new_event_loop
+from snail_common.net.linkrates import AUTO
 
 from .links import DEFAULT_LINK_TIMEOUT
 from .secure import DEFAULT_AHEAD, DEFAULT_BUSY_WAIT, DEFAULT_TIMEOUT, AsyncSecureRunner
@@ -27,7 +27,7 @@ class SecureRunner:
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
                  link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 scheme: str = DEFAULT_SCHEME) -> None:
+                 scheme: str = AUTO) -> None:
         self._loop = new_event_loop()
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
                                          connect_timeout, ahead, busy_wait, cert_name,
@@ -100,6 +100,11 @@ class SecureRunner:
     @property
     def invocations(self) -> int:
         return self._runner.invocations
+
+    @property
+    def retries(self) -> int:
+        """Invocations run again on another replica after a retryable failure."""
+        return self._runner.retries
 
     def close(self) -> None:
         if not self._loop.is_closed():

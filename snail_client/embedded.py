@@ -24,8 +24,8 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net.conn import format_addr
+from snail_common.net.linkrates import AUTO
 from snail_common.net.parent import PARENT_ENV
 from snail_common.net.tls import make_certs
 
@@ -142,6 +142,7 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
             for i, map_path in enumerate(maps):
                 started.append(start_daemon("mapd", [
                     "--map", str(map_path), "--tls-dir", str(tls_dir),
+                    "--evaluator", evaluator.address,
                     "--log-level", MAP_OWNER_LOG_LEVEL], root / f"mapd{i}.log", env=env))
             owners = tuple(started[1:])
             allowed = [arg for owner in owners for arg in ("--map-owner", owner.address)]
@@ -167,7 +168,7 @@ def check_addresses(garbler: str | None, evaluator: str | None,
 def connected(garbler: str | None = None, evaluator: str | None = None,
               tls_dir: str | None = None, daemon_args: tuple[str, ...] = (),
               busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
-              link_timeout: float = DEFAULT_LINK_TIMEOUT, scheme: str = DEFAULT_SCHEME,
+              link_timeout: float = DEFAULT_LINK_TIMEOUT, scheme: str = AUTO,
               maps: Sequence[str | Path] = (),
               ) -> Iterator[tuple[SecureRunner, Services | None]]:
     """A runner for the servers at these addresses, or for embedded ones started for the

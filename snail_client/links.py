@@ -22,11 +22,16 @@ from snail_common.net.errors import UNEXPECTED, ConnectionClosed, ProtocolError,
 
 class ServiceError(Exception):
     """A secure invocation failed (network, server error, timeout or integrity);
-    ``code`` is the server's error code when a server refused or failed the session."""
+    ``code`` is the server's error code when a server refused or failed the session,
+    ``link`` the server connection that failed or said so, when one did, and ``retry``
+    whether the invocation may be run again (on another replica: secure.py)."""
 
-    def __init__(self, message: str, code: str | None = None) -> None:
+    def __init__(self, message: str, code: str | None = None,
+                 link: Link | None = None, retry: bool | None = None) -> None:
         super().__init__(message)
         self.code = code
+        self.link = link
+        self.retry = retry  # whether another replica may serve it (None: only if busy)
 
 
 class Inbox:
@@ -166,11 +171,11 @@ async def labels_and_stats(link: Link, inbox: Inbox, kind: str,
     while True:
         msg, size = await inbox.get()
         if isinstance(msg, Exception):
-            raise ServiceError(f"{link.where}: {msg}")
+            raise ServiceError(f"{link.where}: {msg}", link=link)
         received += size
         if msg["t"] == "error":
             raise ServiceError(f"{link.where} reported {msg['code']}: {msg['message']}",
-                               msg["code"])
+                               msg["code"], link)
         if msg["t"] == kind:
             try:
                 labels.add(msg)

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
-from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.loc.backends import (
     Backend,
     CircuitBackend,
@@ -30,6 +30,7 @@ from snail_common.loc.pipeline import localize as run_pipeline
 from snail_common.loc.problem import PoseVectors, Problem
 from snail_common.loc.reference import reprojection_rms
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX, assess, degenerate, pose_error
+from snail_common.net.linkrates import AUTO
 from snail_common.pnp.spec import Spec
 
 from .blocking import SecureRunner
@@ -52,7 +53,7 @@ class Options(PipelineOptions):
     tls_dir: str | None = None
     busy_wait: float = DEFAULT_BUSY_WAIT
     link_timeout: float = DEFAULT_LINK_TIMEOUT
-    scheme: str = DEFAULT_SCHEME
+    scheme: str = AUTO
     max_rms_px: float = DEFAULT_MAX_RMS_PX
     cert_name: str = "client"
 
@@ -70,9 +71,12 @@ class GarbledBackend(CircuitBackend):
         super().__init__(self._secure_run, "garbled")
         self.secure = runner
         self.on_invocation: Callable[[], object] | None = None  # e.g. a progress bar
+        self.schemes: Counter[str] = Counter()  # sessions per garbling scheme so far
 
     def _secure_run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
-        out = self.secure.run(circuit_id, bits)
+        run = self.secure.invoke(circuit_id, bits)
+        self.schemes[run.scheme] += 1
+        out = run.outputs
         if self.on_invocation is not None:
             self.on_invocation()
         return out
@@ -126,16 +130,27 @@ def localize(problem: Problem, options: Options, backend: Backend,
     reason = degenerate(problem)
     if reason is not None and start is not None:
         return _degenerate_record(problem, options, start, reason)
-    before = backend.traffic()
+    before, schemes = backend.traffic(), Counter(getattr(backend, "schemes", {}))
+    retried = _retries(backend)
     result = run_pipeline(problem, options, backend, initial)
     after = backend.traffic()
-    return record(result, options, {link: after.get(link, 0) - before.get(link, 0)
-                                    for link in LINKS}, problem)
+    schemes = Counter(getattr(backend, "schemes", {})) - schemes
+    out = record(result, options, {link: after.get(link, 0) - before.get(link, 0)
+                                   for link in LINKS}, problem, schemes)
+    if isinstance(backend, GarbledBackend):
+        out["retries"] = _retries(backend) - retried
+    return out
+
+
+def _retries(backend: Backend) -> int:
+    """Secure runs the garbled backend ran again on another replica (0 for the others)."""
+    return backend.secure.retries if isinstance(backend, GarbledBackend) else 0
 
 
 def record(result: Localized, options: Options, traffic: dict[str, int],
-           problem: Problem) -> dict:
-    """The snail-result/1 record of a localized frame."""
+           problem: Problem, schemes: Counter[str] | None = None) -> dict:
+    """The snail-result/1 record of a localized frame; ``schemes``: its sessions per
+    garbling scheme (with ``--scheme auto`` each session's is picked on its own)."""
     status, warnings = assess(problem, result.rvec, result.tvec, result.converged,
                               result.rms_px, options.max_rms_px)
     out = {
@@ -153,7 +168,9 @@ def record(result: Localized, options: Options, traffic: dict[str, int],
     if problem.reference_pose is not None:
         out["error"] = pose_error(result.rvec, result.tvec, problem.reference_pose)
     if options.backend == "garbled":
-        out["scheme"] = options.scheme
+        out["scheme"] = schemes.most_common(1)[0][0] if schemes else options.scheme
+        if schemes and len(schemes) > 1:
+            out["schemes"] = dict(schemes)
     if options.backend != "float64":
         iface = interface(result.spec)
         out["circuit"] = {"and": iface.counts["and"], "xor": iface.counts["xor"],

@@ -15,9 +15,9 @@ from pathlib import Path
 import click
 import numpy as np
 
-from snail_common.gc.stream import DEFAULT_SCHEME, SCHEMES
 from snail_common.loc.problem import PoseVectors, ProblemError
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
+from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
 from snail_common.net.tls import TLSFileError
 
 from . import owner_localize
@@ -88,11 +88,13 @@ def _options(fn: Callable) -> Callable:
                      default=DEFAULT_BUSY_WAIT, show_default=True, metavar="SECONDS",
                      help="How long a secure run retries servers that answer busy (at "
                           "their session limit), with jittered backoff, before failing."),
-        click.option("--scheme", type=click.Choice(list(SCHEMES)),
-                     default=DEFAULT_SCHEME, show_default=True,
+        click.option("--scheme", type=click.Choice(list(CLIENT_SCHEMES)),
+                     default=AUTO, show_default=True,
                      help="Garbling scheme: three-halves (Rosulek-Roy 2021) sends 0.77x the "
                           "garbled-table bytes of half-gates but garbles slower: worth it "
-                          "on a slow garbler-evaluator link."),
+                          "on a slow garbler-evaluator link. auto: per session, from the "
+                          "server link's rate and the garbler's own, as the garbler "
+                          "measured them (half-gates until it has)."),
         click.option("--link-timeout", type=click.FloatRange(1, 3600),
                      default=DEFAULT_LINK_TIMEOUT, show_default=True, metavar="SECONDS",
                      help="A server link a run waits on is probed after a fifth of this "

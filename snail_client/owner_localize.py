@@ -73,8 +73,9 @@ def localize_frame(path: str, options: Options, map_owner: str | None,
         tls_dir = services.tls_dir if services is not None else options.tls_dir
         if services is not None and services.map_owners:
             map_owner = services.map_owners[0].address
-        with _map_owner(map_owner, map_path, tls_dir) as address, MapOwnerLink(
-                address, tls_dir, options.cert_name) as link:
+        evaluator = options.evaluator or (services.evaluator_addr if services else None)
+        with _map_owner(map_owner, map_path, tls_dir, evaluator) as address, \
+                MapOwnerLink(address, tls_dir, options.cert_name) as link:
             return run_frame(frame, link, GarbledBackend(runner), options)
 
 
@@ -93,14 +94,15 @@ def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
 
 @contextlib.contextmanager
 def _map_owner(address: str | None, map_path: str | None, tls_dir: str | Path,
-               ) -> Iterator[str]:
+               evaluator: str | None) -> Iterator[str]:
     """The map owner's address: the given one, or one started here for ``--map`` beside
-    remote servers."""
+    remote servers (it may send its labels to ``evaluator`` alone)."""
     if address:
         yield address
         return
     with tempfile.TemporaryDirectory(prefix="snail-mapd-") as tmp:
         daemon = start_daemon("mapd", ["--map", str(map_path), "--tls-dir", str(tls_dir),
+                                       "--evaluator", str(evaluator),
                                        "--log-level", "warning"], Path(tmp) / "mapd.log")
         try:
             yield daemon.address

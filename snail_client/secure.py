@@ -23,14 +23,18 @@ burst over more than one trip. A session whose shared bits turn out different is
 cancelled, never given a second label per wire.
 
 Both connections are multiplexed by sid, so invocations may run concurrently. Any
-failure (an ``error`` from a server, a lost connection, the timeout) raises ServiceError
-naming the server and cause, tells the other server to drop the session, and the next
-invocation reconnects as needed.
+failure (an ``error`` from a server, a lost connection, the timeout) tells the other
+server to drop the session; a retryable one (busy, draining, a replica lost) runs again
+on another replica within ``busy_wait`` (retry.py), else it raises ServiceError naming
+the server and cause. Each address may stand for several replicas (replicas.py): every
+session goes to the next garbler and evaluator in turn, and names its evaluator replica
+to the garbler, which streams there only if its own operator's names reach it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import secrets
 import time
 from pathlib import Path
@@ -48,21 +52,24 @@ from snail_common.gc import (
     fresh_delta,
     labels_to_bytes,
 )
-from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net import messages, tls
 from snail_common.net.chunks import runs, write_labels
-from snail_common.net.conn import connect
+from snail_common.net.conn import connect, format_addr
 from snail_common.net.errors import (
     BUSY,
+    PEER_LOST,
     TOO_LARGE,
     ConnectionClosed,
     ProtocolError,
     RemoteError,
 )
+from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES, ahead_depth, pick_scheme
 from snail_common.pnp.spec import owner_bits
 
 from .ahead import AheadPool
 from .links import DEFAULT_LINK_TIMEOUT, Link, ServiceError, labels_and_stats
+from .replicas import ReplicaSet
+from .retry import blame, retryable
 from .sessions import (
     LINKS,
     OWNER_LINKS,
@@ -87,8 +94,9 @@ class AsyncSecureRunner:
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
                  link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 scheme: str = DEFAULT_SCHEME) -> None:
+                 scheme: str = AUTO) -> None:
         families.register_all()
+        # each a NAME:PORT that may stand for several replicas (replicas.py)
         self.garbler_addr = parse_address(garbler_addr, "garbler address")
         self.evaluator_addr = parse_address(evaluator_addr, "evaluator address")
         self.tls_dir = tls_dir
@@ -97,15 +105,21 @@ class AsyncSecureRunner:
         self.connect_timeout = connect_timeout
         self.busy_wait = busy_wait
         self.link_timeout = link_timeout
-        if scheme not in messages.SCHEMES:
-            raise ValueError(f"scheme must be one of {', '.join(messages.SCHEMES)}, "
+        if scheme not in CLIENT_SCHEMES:
+            raise ValueError(f"scheme must be one of {', '.join(CLIENT_SCHEMES)}, "
                              f"got {scheme!r}")
-        self.scheme = scheme  # the garbling scheme of every session this runner asks for
+        # the garbling scheme of every session this runner asks for; auto: per session,
+        # from what the garbler measured (linkrates.pick_scheme)
+        self.scheme = scheme
+        self.measured: dict[str, float] = {}  # the garbler's last rates (its stats)
+        self._ahead_floor = ahead
         self.last: Invocation | None = None
         self.totals = dict.fromkeys(LINKS, 0)
         self.invocations = 0
-        self._links: dict[str, Link] = {}
-        self._lock = asyncio.Lock()
+        self.retries = 0  # invocations run again after a retryable failure (retry.py)
+        self.replicas = {role: ReplicaSet(role, addr, functools.partial(self._open, role))
+                         for role, addr in (("garbler", self.garbler_addr),
+                                            ("evaluator", self.evaluator_addr))}
         self.ahead = AheadPool(ahead, self._prepare, self._cancel)
         self.frame: tuple[bytes, str] | None = None  # see use_frame
 
@@ -115,22 +129,17 @@ class AsyncSecureRunner:
         Sessions prepared for an earlier frame are dropped when found."""
         self.frame = (handle, map_owner)
 
-    async def _link(self, role: str) -> Link:
-        async with self._lock:
-            link = self._links.get(role)
-            if link is None or not link.reusable():
-                addr = self.garbler_addr if role == "garbler" else self.evaluator_addr
-                try:
-                    conn = await connect(*addr, self.ctx, "client", role,
-                                         self.connect_timeout)
-                except ConnectionClosed as exc:
-                    raise ServiceError(str(exc)) from None
-                link = self._links[role] = Link(conn, self.link_timeout)
-            return link
+    async def _open(self, role: str, addr: tuple[str, int]) -> Link:
+        """A link to the ``role`` replica at ``addr``; its certificate must carry the name
+        the replicas were reached by (their addresses are not in it)."""
+        conn = await connect(*addr, self.ctx, "client", role, self.connect_timeout,
+                             server_name=self.replicas[role].target[0])
+        return Link(conn, self.link_timeout)
 
     async def connect(self) -> tuple[Link, Link]:
-        """Open both connections now (otherwise the first run does)."""
-        links = await asyncio.gather(self._link("garbler"), self._link("evaluator"),
+        """Links to the next garbler and evaluator replicas in turn (replicas.py)."""
+        links = await asyncio.gather(self.replicas["garbler"].pick(),
+                                     self.replicas["evaluator"].pick(),
                                      return_exceptions=True)  # both settle, no orphan task
         for link in links:
             if isinstance(link, BaseException):
@@ -153,22 +162,26 @@ class AsyncSecureRunner:
     async def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
         """One secure run of ``circuit_id`` on ``input_bits`` (bool, one per input wire).
 
-        A server at its session limit answers ``busy``: the run is retried with a fresh
-        session after a jittered, doubling pause, for up to ``busy_wait`` seconds in all
-        (reported as ``client_busy_wait_s`` in the timing)."""
+        A run refused as busy runs again, and one refused as draining or whose replica
+        was lost does where another replica answers (retry.py): with a fresh session,
+        after a jittered, doubling pause, for up to ``busy_wait`` seconds in all
+        (``client_busy_wait_s`` in the timing; ``self.retries`` counts the runs again)."""
         t0 = time.perf_counter()
-        pause = BACKOFF_FIRST
+        pause, attempt = BACKOFF_FIRST, 0
         while True:
             try:
-                inv = await self._invoke_once(circuit_id, input_bits)
+                inv = await self._invoke_once(circuit_id, input_bits, attempt == 0)
             except ServiceError as exc:
                 waited = time.perf_counter() - t0
-                if exc.code != BUSY or waited + pause > self.busy_wait:
-                    if exc.code == BUSY:
-                        raise ServiceError(f"{exc} (retried for {waited:.1f} s, the "
-                                           f"--busy-wait limit is {self.busy_wait:g} s)",
-                                           BUSY) from None
+                again = exc.retry if exc.retry is not None else exc.code == BUSY
+                if not again or waited + pause > self.busy_wait:
+                    if again:
+                        raise ServiceError(f"{exc} (retried {attempt} times for "
+                                           f"{waited:.1f} s, the --busy-wait limit is "
+                                           f"{self.busy_wait:g} s)", exc.code) from None
                     raise
+                attempt += 1
+                self.retries += 1
                 await asyncio.sleep(pause * (0.5 + secrets.randbelow(1000) / 1000))
                 pause = min(2 * pause, BACKOFF_MAX)
                 continue
@@ -177,7 +190,8 @@ class AsyncSecureRunner:
                 inv.timing["client_busy_wait_s"] = round(waited, 4)
             return inv
 
-    async def _invoke_once(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
+    async def _invoke_once(self, circuit_id: str, input_bits: np.ndarray,
+                           first: bool = True) -> Invocation:
         t0 = time.perf_counter()
         bits = np.asarray(input_bits)
         frame = self.frame[0] if self.frame else None
@@ -189,7 +203,8 @@ class AsyncSecureRunner:
             self._cancel(session)
             raise ValueError(f"input_bits must be a bool vector of {iface.n_inputs} bits "
                              f"for {circuit_id}, got {bits.dtype} {bits.shape}")
-        self.ahead.used(circuit_id)
+        if first:  # one use per invocation, however many attempts it takes
+            self.ahead.used(circuit_id)
         labels = active_input_labels(session.seed, session.delta, bits)
         try:
             sent_e = sum(write_labels(session.evaluator.conn, "input_labels", sid,
@@ -204,7 +219,11 @@ class AsyncSecureRunner:
                 from None
         except (ServiceError, ConnectionClosed) as exc:
             self._cancel(session)
-            raise ServiceError(f"{circuit_id}: {exc}", getattr(exc, "code", None)) from None
+            failed = ServiceError(f"{circuit_id}: {exc}", getattr(exc, "code", None),
+                                  getattr(exc, "link", None) or session.evaluator)
+            failed.retry = retryable(failed, session, self.replicas)
+            blame(failed, session, self.replicas.values())
+            raise failed from None
         finally:
             session.garbler.waiting.pop(sid, None)
             session.evaluator.waiting.pop(sid, None)
@@ -224,11 +243,30 @@ class AsyncSecureRunner:
         timing = {f"garbler_{k}": v for k, v in g_stats["timing"].items()}
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
         ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
-        self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e)
+        self._measured(g_stats["timing"], session, traffic["garbler_to_evaluator"], wall)
+        timing["client_ahead"] = float(self.ahead.ahead)  # the depth it sized from them
+        self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e, session.scheme)
         self.invocations += 1
         for k, v in traffic.items():
             self.totals[k] = self.totals.get(k, 0) + v
         return self.last
+
+    def _measured(self, report: dict[str, float], session: Prepared, table_bytes: int,
+                  wall: float) -> None:
+        """Take the garbler's rates from a session's stats; size the garble-ahead depth
+        from them (its tables at the evaluator before they are asked for)."""
+        self.measured.update({k: v for k, v in report.items()
+                              if k.startswith(("and_per_s_", "link_"))})
+        if self._ahead_floor > 0:  # it only grows: one slow invocation (a busy core)
+            # must not take away the depth the next ones need
+            self.ahead.ahead = max(self.ahead.ahead, self._ahead_floor, ahead_depth(
+                self.measured, session.iface.counts["and"], session.scheme, table_bytes,
+                wall))
+
+    def session_scheme(self) -> str:
+        """The scheme of the next session: the runner's, or with ``auto`` the one the
+        garbler's last measurements favour."""
+        return pick_scheme(self.measured) if self.scheme == AUTO else self.scheme
 
     async def _prepare(self, circuit_id: str, fixed: bool = True) -> Prepared:
         """Ask for a session's garbling now, with fresh secrets (and, ``fixed``, send the
@@ -242,8 +280,9 @@ class AsyncSecureRunner:
             pass
         try:
             return await self._prepare_once(circuit_id, shared)
-        except ConnectionClosed as exc:
-            raise ServiceError(f"{circuit_id}: {exc}") from None
+        except ConnectionClosed as exc:  # a replica lost twice over: another one?
+            raise ServiceError(f"{circuit_id}: {exc}", PEER_LOST, retry=any(
+                r.several() for r in self.replicas.values())) from None
 
     async def _prepare_once(self, circuit_id: str, fixed: FixedInputs | None) -> Prepared:
         loop = asyncio.get_running_loop()
@@ -273,26 +312,28 @@ class AsyncSecureRunner:
             todo[FIRST_INPUT:] = ~fixed.mask[:iface.n_inputs - n_owner]
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
+        scheme = self.session_scheme()
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
         chash = iface.content_hash
         try:
             sent_e = evaluator.conn.write(messages.make(
                 "session_start", sid=sid, circuit=circuit_id, hash=chash,
-                scheme=self.scheme))
+                scheme=scheme))
             if fixed is not None:
                 labels = active_input_labels(seed, delta, fixed.bits)
                 sent_e += sum(write_labels(evaluator.conn, "input_labels", sid, labels[a:b],
                                            a, todo.size) for a, b in runs(~todo))
             sent_g = garbler.conn.write(messages.make(
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
-                delta=labels_to_bytes(delta), key=key, scheme=self.scheme, **owner))
+                delta=labels_to_bytes(delta), key=key, scheme=scheme, **owner,
+                **_replica(evaluator)))
             await asyncio.gather(evaluator.conn.drain(), garbler.conn.drain())
         except ConnectionClosed:
             garbler.cancel(sid)
             evaluator.cancel(sid)
             raise
         return Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
-                         sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo)
+                         sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo, scheme)
 
     async def _collect(self, session: Prepared) -> list[tuple[np.ndarray, int, dict]]:
         """Both servers' label vectors and stats; the first failure cancels the other."""
@@ -319,7 +360,7 @@ class AsyncSecureRunner:
 
     async def health(self, role: str) -> dict[str, Any]:
         """The ``health`` message of the garbler or the evaluator (session counters)."""
-        link = await self._link(role)
+        link = await self.replicas[role].pick()
         link.health = asyncio.get_running_loop().create_future()
         link.conn.write(messages.make("health_request"))
         try:
@@ -329,8 +370,8 @@ class AsyncSecureRunner:
 
     async def close(self) -> None:
         await self.ahead.close()
-        links, self._links = list(self._links.values()), {}
-        await asyncio.gather(*(link.close() for link in links), return_exceptions=True)
+        await asyncio.gather(*(r.close() for r in self.replicas.values()),
+                             return_exceptions=True)
 
     async def __aenter__(self) -> AsyncSecureRunner:
         await self.connect()
@@ -339,3 +380,15 @@ class AsyncSecureRunner:
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
+
+
+def _replica(evaluator: Link) -> dict[str, str]:
+    """How a garble request names the evaluator replica its session streams to: the
+    address this client reached it at and the instance it announced (the garbler checks
+    both against its own --evaluator names: snail_common.net.replicas)."""
+    named: dict[str, str] = {}
+    if evaluator.conn.peer:
+        named["evaluator"] = format_addr(*evaluator.conn.peer[:2])
+    if evaluator.conn.info.get("instance"):
+        named["evaluator_id"] = evaluator.conn.info["instance"]
+    return named

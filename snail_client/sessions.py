@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from snail_common.circuit.ir import Interface
+from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net.conn import parse_addr
 
 from .links import Inbox, Link
@@ -30,6 +31,7 @@ class Invocation:
     timing: dict[str, float] = field(default_factory=dict)
     garbled_ahead: int = 0
     labels_on_call: int = 0
+    scheme: str = DEFAULT_SCHEME  # the garbling scheme of its session
 
 
 @dataclass(eq=False)
@@ -53,6 +55,7 @@ class Prepared:
     # the client's label slots (two constants, one per input wire but the map owner's)
     # still to send when invoked: those not sent with ``fixed``
     todo: np.ndarray = field(default_factory=lambda: np.ones(0, bool))
+    scheme: str = DEFAULT_SCHEME  # the garbling scheme asked of both servers
 
     @property
     def usable(self) -> bool:

@@ -98,12 +98,13 @@ def turbo(out_dir: str, backend: str, link_delay_ms: float, min_invocations: int
 
     final = run_turbo(Path(out_dir), backend, link_delay_ms, min_invocations, max_steps,
                       seed, quiet=_flag("quiet"), verbose=_flag("verbose"))
+    later = ("no frame after the first" if final["median_invocations_after_first"] is None
+             else f"{final['median_invocations_after_first']:g} secure runs per frame after "
+                  f"the first ({final['median_iterations_after_first']:g} iterations)")
     click.echo(f"{'reached' if final['reached'] else 'missed'} the target in "
                f"{final['steps']} steps: {100 * final['position_error_m']:.2f} cm, "
                f"{final['rotation_error_deg']:.2f} deg off; median "
-               f"{final['median_seconds_per_step']:.2f} s per step, "
-               f"{final['median_invocations_after_first']:g} secure runs per frame after the "
-               f"first ({final['median_iterations_after_first']:g} iterations), client CPU "
+               f"{final['median_seconds_per_step']:.2f} s per step, {later}, client CPU "
                f"{final['median_client_cpu_s']:.2f} s per step; wrote {out_dir}")
     if not final["reached"]:
         sys.exit(3)

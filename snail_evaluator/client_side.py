@@ -15,6 +15,7 @@ from snail_common.net.errors import (
     ABORTED,
     BAD_REQUEST,
     BUSY,
+    DRAINING,
     DUPLICATE_SESSION,
     UNEXPECTED,
     ProtocolError,
@@ -76,7 +77,7 @@ class ClientSide:
             s.client = conn
         except ProtocolError as exc:
             conn.post(messages.error(exc.code, exc.message, sid))
-            if exc.code == BUSY:
+            if exc.code in (BUSY, DRAINING):  # refused for want of a slot: one line
                 self.log_session(peer=conn.peer_name, sid=sid, circuit=msg["circuit"],
                                  n_and=0, bytes_in=size, bytes_out=0, seconds=0.0,
                                  outcome=exc.code, reason=exc.message)

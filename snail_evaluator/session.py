@@ -41,13 +41,16 @@ class Session:
     # came while the circuit was still loading, replayed once it is
     early_bytes: int = 0  # their wire size
     owner: LabelAssembler | None = None  # the map owner's wires, if the circuit has any
+    # epoch seconds of the session's events here: first_received and last_received
+    # (table frames), labels (the client's request complete), eval_end; tables_wait_s
+    timeline: dict[str, float] = field(default_factory=dict)
 
     def record(self, outcome: str, reason: str = "") -> dict:
         """This session's log line fields (see Daemon.log_session)."""
         return {"sid": self.sid, "circuit": self.circuit, "n_and": self.n_and,
                 "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
                 "seconds": time.monotonic() - self.started, "outcome": outcome,
-                "reason": reason}
+                "reason": reason, "scheme": self.scheme, "timeline": self.timeline}
 
 
 def consume_failure(future: asyncio.Future) -> None:

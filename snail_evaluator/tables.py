@@ -63,11 +63,13 @@ class GarblerSide:
             self._arm(s)
             self.counters["streaming"] += 1
             try:
-                ev, received, ahead, t_labels = await self._evaluate(conn, s, schedule)
+                ev, received, ahead, t_labels, waited = await self._evaluate(conn, s,
+                                                                             schedule)
             finally:
                 self.counters["streaming"] -= 1
             received += size
             t_done = time.monotonic()
+            s.timeline["eval_end"] = time.time()
             outputs = ev.output_labels()
         except ProtocolError as exc:
             self._fail(s, ProtocolError(exc.code, f"the garbler's table stream: {exc.message}"))
@@ -90,8 +92,9 @@ class GarblerSide:
             s.bytes_out += s.client.write(messages.make(
                 "stats", sid=sid, traffic={"garbler_to_evaluator": received,
                                            "garbled_ahead": ahead},
-                timing={"wait_s": t_labels - t0, "evaluate_s": t_done - t_labels,
-                        "lanes": float(ev.lanes)}))
+                timing={"ahead_s": t_labels - t0, "wait_s": waited,
+                        "evaluate_s": t_done - t_labels, "lanes": float(ev.lanes),
+                        **{f"t_{k}": v for k, v in s.timeline.items()}}))
         except ConnectionClosed:
             pass  # the client left after its labels arrived: nobody to tell
         self._complete(s)
@@ -99,8 +102,8 @@ class GarblerSide:
             await s.client.drain()
         await conn.drain()
 
-    async def _evaluate(self, conn: Connection, s: Session,
-                        schedule: Schedule) -> tuple[Solo | EvalLane, int, int, float]:
+    async def _evaluate(self, conn: Connection, s: Session, schedule: Schedule,
+                        ) -> tuple[Solo | EvalLane, int, int, float, float]:
         """Read the table stream of ``s``; evaluate it once the client's labels are in.
 
         Garbling does not depend on inputs, so a client may have the garbler garble ahead:
@@ -110,8 +113,12 @@ class GarblerSide:
         With lanes on, the session joins a batch when its labels come (lanes.py) and,
         once its own stream is in, waits for the batch's pass to end.
         Returns the evaluation, the bytes received, how many of them came before the
-        labels and when the labels arrived."""
+        labels, when the labels arrived, and how long the evaluation then waited for
+        table frames (the server link's share of the invocation: never part of the
+        evaluator's own work). The table frames' arrival and the labels' are stamped in
+        ``s.timeline``."""
         received, ahead, timeout = 0, 0, self.options.session_timeout
+        waited = 0.0
         laned = scheme_id(s.scheme) == SCHEME_HALF_GATES  # lanes batch half-gates sessions only
         buffered: list[bytes | memoryview] = []
         ev: Solo | EvalLane | None = None
@@ -125,6 +132,7 @@ class GarblerSide:
                     if s.watchdog:
                         s.watchdog.cancel()
                     t_labels = time.monotonic()
+                    s.timeline["labels"] = time.time()
                     frames = list(buffered)
                     buffered.clear()
                     ahead = received
@@ -141,7 +149,10 @@ class GarblerSide:
                     await asyncio.wait({recv, s.ready}, return_when=asyncio.FIRST_COMPLETED)
                     if not recv.done():
                         continue
+                t_wait = time.monotonic()
                 msg, size = await recv
+                if ev is not None:  # evaluating, and this frame was not there yet
+                    waited += time.monotonic() - t_wait
                 recv = None
                 received += size
                 s.bytes_in += size
@@ -152,6 +163,8 @@ class GarblerSide:
                 if msg["t"] != "tables" or msg["sid"] != s.sid:
                     raise ProtocolError(UNEXPECTED, f"expected tables of this session, the "
                                                     f"garbler sent {msg['t']}")
+                s.timeline.setdefault("first_received", time.time())
+                s.timeline["last_received"] = time.time()
                 if ev is None:
                     buffered.append(msg["data"])
                     self.ahead_buffered += len(msg["data"])
@@ -174,7 +187,7 @@ class GarblerSide:
             s.queued = 0
             if recv is not None:
                 recv.cancel()
-        return ev, received, ahead, t_labels
+        return ev, received, ahead, t_labels, waited
 
     def _queue_full(self, s: Session) -> bool:
         """No more garbled-ahead tables for ``s``: the daemon's buffer, or its client's

@@ -27,18 +27,25 @@ from .daemon import GarblerDaemon
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--listen", required=True, callback=address, metavar="HOST:PORT",
               help="Address to accept clients on (port 0: any free port).")
-@click.option("--evaluator", "evaluator", required=True, callback=address,
-              metavar="HOST:PORT", help="Address of the evaluator to stream tables to.")
+@click.option("--evaluator", "evaluators", required=True, multiple=True, callback=addresses,
+              metavar="NAME:PORT",
+              help="The evaluator to stream tables to (repeatable). A name may resolve to "
+                   "several replicas (tasks.evaluator in a Docker swarm, a headless "
+                   "Kubernetes Service): each session streams to the replica its client "
+                   "talks to, which the client names by address and instance id. These "
+                   "are the only evaluators this garbler dials: a client naming another "
+                   "is refused as forbidden.")
 @click.option("--map-owner", "map_owners", multiple=True, callback=addresses,
               metavar="HOST:PORT",
               help="A map owner (snail-mapd) this garbler may dial for the map-owner setting "
                    "(repeatable). Clients name the map owner in their requests; the garbler "
                    "dials only the ones allowed here, so that no client can make it connect "
                    "wherever it likes. Default: none, and map-owner sessions are refused. "
-                   "Clients must name it as given here: host and port are compared, names "
-                   "are not resolved ('localhost' is not '127.0.0.1').")
+                   "The name is resolved (to all its addresses): clients may name it as "
+                   "given here or by one of its addresses; a client's own host name is "
+                   "compared, never resolved.")
 @daemon_options
-def main(listen: tuple[str, int], evaluator: tuple[str, int],
+def main(listen: tuple[str, int], evaluators: tuple[tuple[str, int], ...],
          map_owners: tuple[tuple[str, int], ...], tls_dir: str, log_level: str,
          **kwargs) -> None:
     """Garbler daemon: garbles circuits from each client's seed and offset and streams the
@@ -49,7 +56,7 @@ def main(listen: tuple[str, int], evaluator: tuple[str, int],
         server_ctx = tls.server_context(tls_dir, "garbler")
         client_ctx = tls.client_context(tls_dir, "garbler")
         daemon = GarblerDaemon(options_from({**kwargs, "tls_dir": tls_dir}), logger,
-                               evaluator, client_ctx, map_owners)
+                               evaluators, client_ctx, map_owners)
     except (OSError, ValueError) as exc:
         fail(2, f"--tls-dir: {exc}", "snail-garbler")
     families.register_all()

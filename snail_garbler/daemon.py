@@ -28,6 +28,7 @@ import contextlib
 import functools
 import logging
 import time
+from collections.abc import Iterator
 from typing import Any
 
 from snail_common.circuit.schedule import Schedule
@@ -40,7 +41,7 @@ from snail_common.gc.stream import (
 )
 from snail_common.net import messages
 from snail_common.net.chunks import write_labels
-from snail_common.net.conn import Connection, connect
+from snail_common.net.conn import Connection, connect, format_addr
 from snail_common.net.errors import (
     ABORTED,
     BAD_REQUEST,
@@ -53,9 +54,13 @@ from snail_common.net.errors import (
     ProtocolError,
     RemoteError,
 )
+from snail_common.net.linkrates import LinkRates
 from snail_common.net.logs import event
 from snail_common.net.metrics import OK
+from snail_common.net.replicas import Address, Replicas
 from snail_common.net.service import Daemon, Options
+from snail_common.net.tcpinfo import link_advice
+from snail_common.net.tcpinfo import read as tcp_info
 
 from .lanes import LaneBatcher, LaneView
 from .owner import OwnerInputs
@@ -100,15 +105,17 @@ class GarblerDaemon(Daemon):
     gone_event = "client_gone"
 
     def __init__(self, options: Options, logger: logging.Logger,
-                 evaluator: tuple[str, int], client_ctx,
-                 map_owners: tuple[tuple[str, int], ...]) -> None:
+                 evaluators: tuple[Address, ...], client_ctx,
+                 map_owners: tuple[Address, ...]) -> None:
         super().__init__(options, logger)
-        self.evaluator = evaluator
+        # the only evaluators this garbler dials: what its operator's names resolve to
+        self.evaluators = Replicas(evaluators, "--evaluator", "evaluator")
         self.client_ctx = client_ctx  # TLS context for the link to the evaluator
-        self.idle: list[Connection] = []
+        self.idle: dict[Address, list[Connection]] = {}  # pooled, per evaluator replica
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
-        self.owners = OwnerInputs(client_ctx, evaluator, options.handshake_timeout,
-                                  map_owners)
+        self.owners = OwnerInputs(client_ctx, options.handshake_timeout, map_owners)
+        self.rates = LinkRates()  # garbling rates and the server link, measured
+        self.advised = False  # tcp_advice logged
 
     async def serve(self, conn: Connection) -> None:
         """A client's requests. Its sessions end with the connection, once ``serving``
@@ -144,7 +151,7 @@ class GarblerDaemon(Daemon):
         task.add_done_callback(lambda _: tasks.pop(sid, None))
 
     async def _session(self, client: Connection, req: dict[str, Any], size: int) -> None:
-        sid, t0, peer = req["sid"], time.monotonic(), client.peer_name
+        sid, t0, t_wall, peer = req["sid"], time.monotonic(), time.time(), client.peer_name
         record = {"sid": sid, "circuit": req["circuit"], "n_and": 0, "bytes_in": size,
                   "bytes_out": 0, "seconds": 0.0, "outcome": OK}
         try:
@@ -162,32 +169,46 @@ class GarblerDaemon(Daemon):
                 check_delta(req["delta"])
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
-            owner = await self.owners.feed(req, circuit, self.options.session_timeout)
-            scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
-            block, frame = frame_plan(schedule, scheme, self.engine.get("engine", "numpy"))
-            garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
-                                             req["delta"], req["key"], block, frame)
-                       if scheme == SCHEME_HALF_GATES else None)  # lanes are half-gates
-            running = True
-            if garbler is None:
-                make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
-                                         req["key"], block_gates=block, frame_bytes=frame,
-                                         scheme=scheme)
-                # deriving the input labels is AES over the inputs: inline unless large
-                garbler = (make() if schedule.n_inputs < INLINE_INPUTS
-                           else await self.work(make))
-            t_ready = time.monotonic()
-            evaluator = await self._acquire()
+            # the replica the client talks to, if the operator's names reach it
+            where, evaluator = await self._acquire(req)
             try:
+                owner = await self.owners.feed(req, circuit, self.options.session_timeout,
+                                               (format_addr(*where),
+                                                evaluator.info.get("instance")))
+                scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
+                record["scheme"] = req.get("scheme", DEFAULT_SCHEME)
+                block, frame = frame_plan(schedule, scheme,
+                                          self.engine.get("engine", "numpy"))
+                garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
+                                                 req["delta"], req["key"], block, frame)
+                           if scheme == SCHEME_HALF_GATES else None)  # lanes: half-gates
+                running = True
+                if garbler is None:
+                    make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
+                                             req["key"], block_gates=block,
+                                             frame_bytes=frame, scheme=scheme)
+                    # deriving the input labels is AES over the inputs: inline unless large
+                    garbler = (make() if schedule.n_inputs < INLINE_INPUTS
+                               else await self.work(make))
+                t_ready = time.monotonic()
                 self.counters["streaming"] += 1
                 try:
-                    sent, answered = await self._stream(evaluator, garbler, req)
+                    sent, answered, timeline = await self._stream(evaluator, garbler, req)
                 finally:
                     self.counters["streaming"] -= 1
                 t_streamed = time.monotonic()
+                lanes = getattr(garbler, "lanes", 1)
+                cpu_s = timeline.pop("cpu_s")
+                if lanes == 1:  # a lane's thread may have garbled for the others
+                    self.rates.garbled(scheme, schedule.n_and, cpu_s)
+                self.rates.streamed(tcp_info(evaluator.transport.get_extra_info("socket")))
+                self._advise()
+                timeline["request"] = t_wall
+                record["timeline"] = timeline
                 replied = self._reply(client, sid, garbler, sent, {
                     "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
-                    "lanes": float(getattr(garbler, "lanes", 1))}, owner)
+                    "lanes": float(lanes), **{f"t_{k}": v for k, v in timeline.items()},
+                    **self.rates.report()}, owner)
                 if not answered:  # the client need not wait for this; a garbled-ahead
                     # session's verdict comes once its client's labels did, which the
                     # evaluator awaits up to its --idle-timeout while the client is busy
@@ -196,7 +217,7 @@ class GarblerDaemon(Daemon):
             except BaseException:
                 evaluator.abort()
                 raise
-            self._release(evaluator)
+            self._release(where, evaluator)
             if replied:
                 with contextlib.suppress(ConnectionClosed):
                     await client.drain()
@@ -226,6 +247,15 @@ class GarblerDaemon(Daemon):
             record["seconds"] = time.monotonic() - t0
             self.finish(peer, record)
 
+    def _advise(self) -> None:
+        """Once the link is measured: log what this host's TCP settings cost the table
+        stream (tcpinfo.link_advice), once per daemon."""
+        if self.advised or self.rates.link_rate is None or self.rates.rtt_s is None:
+            return
+        self.advised = True
+        for advice in link_advice(self.rates.link_rate, self.rates.rtt_s):
+            event(self.log, "tcp_advice", logging.WARNING, advice=advice)
+
     def _reply(self, client: Connection, sid: bytes, garbler: Garbler | LaneView, sent: int,
                timing: dict[str, float], owner: dict[str, int]) -> int:
         """Queue the output zero-labels and stats for the client; the bytes queued (0 if
@@ -249,36 +279,43 @@ class GarblerDaemon(Daemon):
         return {"outcome": code, "reason": message}
 
     async def _stream(self, evaluator: Connection, garbler: Garbler | LaneView,
-                      req: dict[str, Any]) -> tuple[int, bool]:
+                      req: dict[str, Any]) -> tuple[int, bool, dict[str, float]]:
         """Send session_start and every table frame; garbling of the next frame overlaps
-        the sending of this one. Returns the bytes sent and whether the evaluator has
-        already answered ``done`` (it may finish before the garbler's loop does)."""
+        the sending of this one. Returns the bytes sent, whether the evaluator has
+        already answered ``done`` (it may finish before the garbler's loop does) and the
+        session's timeline: when the last frame was garbled and the first and last
+        handed to the kernel (epoch seconds), and ``cpu_s``, the garbling threads' CPU."""
         sid, timeout = req["sid"], self.options.session_timeout
         sent = evaluator.write(messages.make("session_start", sid=sid, circuit=req["circuit"],
                                              hash=req["hash"],
                                              scheme=req.get("scheme", DEFAULT_SCHEME)))
         frames = garbler.frames()
-        pending = self.submit(next, frames, None)
+        clock = {"cpu_s": 0.0}
+        pending = self.submit(_timed_next, frames, clock)
         answered = False
+        timeline: dict[str, float] = {}
         try:
             while (data := await pending) is not None:
                 if answered:
                     raise ProtocolError(UNEXPECTED, "the evaluator finished before the "
                                                     "last table frame")
-                pending = self.submit(next, frames, None)
+                pending = self.submit(_timed_next, frames, clock)
+                timeline.setdefault("first_sent", time.time())
                 sent += evaluator.write(messages.make("tables", sid=sid, data=data))
                 try:
                     await asyncio.wait_for(evaluator.drain(), timeout)
                 except asyncio.TimeoutError:
                     raise TimeoutError(f"the evaluator took no tables for {timeout:g} s") \
                         from None
+                timeline["last_sent"] = time.time()  # in the kernel's send buffer
                 if not evaluator.idle:  # the evaluator spoke: done, or it gave up
                     await self._verdict(evaluator, sid, timeout)
                     answered = True
+            timeline["garbled"] = clock.get("garbled", time.time())
         finally:
             if not pending.done():  # let the garbling thread finish with the generator
                 await asyncio.gather(pending, return_exceptions=True)
-        return sent, answered
+        return sent, answered, {**timeline, "cpu_s": clock["cpu_s"]}
 
     async def _verdict(self, evaluator: Connection, sid: bytes, timeout: float) -> None:
         """The evaluator's answer for ``sid`` within ``timeout``: ``done`` returns,
@@ -293,23 +330,48 @@ class GarblerDaemon(Daemon):
         if msg["sid"] != sid:
             raise ProtocolError(UNEXPECTED, "the evaluator finished another session")
 
-    async def _acquire(self) -> Connection:
-        while self.idle:
-            conn = self.idle.pop()
+    async def _acquire(self, req: dict[str, Any]) -> tuple[Address, Connection]:
+        """A connection to the evaluator replica the request names (snail_common.net.
+        replicas: forbidden outside this garbler's --evaluator names)."""
+        return await self.evaluators.locate(req.get("evaluator"), req.get("evaluator_id"),
+                                            "evaluator", self._take, self._release)
+
+    async def _take(self, addr: Address) -> Connection:
+        """A pooled idle connection to the replica at ``addr``, else a new one."""
+        pool = self.idle.get(addr, [])
+        while pool:
+            conn = pool.pop()
             if conn.idle:
                 return conn
             await conn.close()  # something arrived while idle (a bye): not reusable
-        return await connect(*self.evaluator, self.client_ctx, "garbler", "evaluator",
-                             self.options.handshake_timeout)
+        return await connect(*addr, self.client_ctx, "garbler", "evaluator",
+                             self.options.handshake_timeout,
+                             server_name=self.evaluators.server_name(addr))
 
-    def _release(self, conn: Connection) -> None:
-        if conn.idle and len(self.idle) < MAX_IDLE and not self.stopping.is_set():
-            self.idle.append(conn)
+    def _release(self, addr: Address, conn: Connection) -> None:
+        pool = self.idle.setdefault(addr, [])
+        if conn.idle and len(pool) < MAX_IDLE and not self.stopping.is_set():
+            pool.append(conn)
         else:
             conn.abort()
 
     async def shutdown_extra(self) -> None:
         await self.owners.close()
-        await asyncio.gather(*(c.close(messages.make("bye")) for c in self.idle),
-                             return_exceptions=True)
+        idle = [conn for pool in self.idle.values() for conn in pool]
         self.idle.clear()
+        await asyncio.gather(*(c.close(messages.make("bye")) for c in idle),
+                             return_exceptions=True)
+
+
+def _timed_next(frames: Iterator[bytes], clock: dict[str, float]) -> bytes | None:
+    """The next table frame (None at the end), adding this thread's CPU seconds spent
+    garbling it to ``clock["cpu_s"]`` (the garbler's own rate, whatever else the cores
+    run) and stamping ``clock["garbled"]`` when a frame is done (epoch seconds)."""
+    t0 = time.thread_time()
+    try:
+        frame = next(frames, None)
+    finally:
+        clock["cpu_s"] += time.thread_time() - t0
+    if frame is not None:
+        clock["garbled"] = time.time()
+    return frame

@@ -10,15 +10,17 @@ garbler learns nothing of the bits (IKNP hides the choices). Links are kept per 
 address with their OT state: the base OTs (~0.1 s) run once per link, not per session.
 
 The client names the address, so the garbler dials only map owners its operator allowed
-(``--map-owner``): otherwise any client could make it open connections to any host and
-port (a server-side request forgery). A request naming another address is refused before
-any connection is made; with none allowed, every map-owner session is.
+(``--map-owner``, names resolved: snail_common.net.replicas): otherwise any client could
+make it open connections to any host and port (a server-side request forgery). A request
+naming another address is refused (``forbidden``) before any connection is made; with
+none allowed, every map-owner session is. The map owner forwards the labels to the
+evaluator replica this session streams to, which the garbler names by address and
+instance id; the map owner checks it against its own operator's ``--evaluator``.
 """
 
 from __future__ import annotations
 
 import asyncio
-import ipaddress
 import ssl
 from collections.abc import Iterable
 from typing import Any
@@ -28,15 +30,17 @@ import numpy as np
 from snail_common.circuit.ir import FIRST_INPUT, Circuit
 from snail_common.gc import derive_zero_labels, labels_from_bytes
 from snail_common.net import messages
-from snail_common.net.conn import Connection, connect, format_addr, parse_addr
+from snail_common.net.conn import Connection, connect
 from snail_common.net.errors import (
     BAD_REQUEST,
+    FORBIDDEN,
     PEER_LOST,
     UNEXPECTED,
     ConnectionClosed,
     ProtocolError,
     RemoteError,
 )
+from snail_common.net.replicas import Replicas
 from snail_common.ot import ExtSender
 from snail_common.ot.carry import ot_part
 from snail_common.pnp.spec import owner_bits
@@ -47,32 +51,23 @@ Link = tuple[Connection, ExtSender]
 NOT_ALLOWED = "the operator must allow it (--map-owner on the garbler)"
 
 
-def address_key(addr: tuple[str, int]) -> tuple[str, int]:
-    """A parsed address as the allow-list compares it: IP literals in one spelling (``::1``
-    is ``0:0::1``), host names in lower case; names are not resolved, so ``localhost``
-    is not ``127.0.0.1``."""
-    host, port = addr
-    try:
-        return ipaddress.ip_address(host).compressed, port
-    except ValueError:
-        return host.lower(), port
-
-
 class OwnerInputs:
     """Runs the OT of the map owner's wires for a session; pools the links."""
 
-    def __init__(self, ctx: ssl.SSLContext, evaluator: tuple[str, int],
-                 handshake_timeout: float, allowed: Iterable[tuple[str, int]]) -> None:
-        self.ctx, self.evaluator = ctx, format_addr(*evaluator)
-        self.allowed = frozenset(map(address_key, allowed))
+    def __init__(self, ctx: ssl.SSLContext, handshake_timeout: float,
+                 allowed: Iterable[tuple[str, int]]) -> None:
+        self.ctx = ctx
+        self.allowed = Replicas(allowed, "--map-owner", "map owner")
         self.handshake_timeout = handshake_timeout
         self.idle: dict[tuple[str, int], list[Link]] = {}
 
-    async def feed(self, req: dict[str, Any], circuit: Circuit,
-                   timeout: float) -> dict[str, int]:
+    async def feed(self, req: dict[str, Any], circuit: Circuit, timeout: float,
+                   evaluator: tuple[str, str | None]) -> dict[str, int]:
         """Give the map owner its labels for session ``req`` (nothing to do for a circuit
-        without map-owner wires); the bytes each way. ProtocolError for a request that
-        does not fit the circuit, the map owner's refusal or a lost map owner."""
+        without map-owner wires), to forward to ``evaluator`` (the replica's address as
+        this garbler reached it, and its instance id); the bytes each way. ProtocolError
+        for a request that does not fit the circuit, a map owner the operator did not
+        allow (``forbidden``), the map owner's refusal or a lost map owner."""
         count = owner_bits(circuit)
         if not count:
             if "frame" in req or "map_owner" in req:
@@ -83,17 +78,16 @@ class OwnerInputs:
             raise ProtocolError(BAD_REQUEST, f"circuit {req['circuit']} takes the map "
                                              f"owner's input: 'frame' and 'map_owner' "
                                              f"are required")
-        try:
-            addr = parse_addr(req["map_owner"])
-        except ValueError as exc:
-            raise ProtocolError(BAD_REQUEST, f"field 'map_owner': {exc}") from None
-        self._check_allowed(addr)
+        if not self.allowed:
+            raise ProtocolError(FORBIDDEN, f"field 'map_owner': this garbler dials no map "
+                                           f"owner, none is allowed; {NOT_ALLOWED}")
+        addr = await self.allowed.check(req["map_owner"], "map_owner")
         x0 = derive_zero_labels(req["seed"], FIRST_INPUT + circuit.n_inputs)[-count:]
         x1 = x0 ^ labels_from_bytes(req["delta"])[0]
         conn, ot = await self._acquire(addr)
         before = conn.bytes_out, conn.bytes_in
         try:
-            await self._run(conn, ot, req, count, x0, x1, timeout)
+            await self._run(conn, ot, req, count, x0, x1, timeout, evaluator)
         except RemoteError as exc:  # the client hears it as the map owner's, not the evaluator's
             conn.abort()
             raise ProtocolError(exc.code, exc.message) from None
@@ -107,22 +101,13 @@ class OwnerInputs:
         return {"garbler_to_mapowner": conn.bytes_out - before[0],
                 "mapowner_to_garbler": conn.bytes_in - before[1]}
 
-    def _check_allowed(self, addr: tuple[str, int]) -> None:
-        """BAD_REQUEST unless the operator allowed this map owner: checked before any
-        connection, so a client cannot make the garbler dial where it likes."""
-        if not self.allowed:
-            raise ProtocolError(BAD_REQUEST, f"field 'map_owner': this garbler dials no map "
-                                             f"owner, none is allowed; {NOT_ALLOWED}")
-        if address_key(addr) not in self.allowed:
-            raise ProtocolError(BAD_REQUEST, f"field 'map_owner': {format_addr(*addr)} is "
-                                             f"not a map owner this garbler may dial; "
-                                             f"{NOT_ALLOWED}")
-
     async def _run(self, conn: Connection, ot: ExtSender, req: dict[str, Any], count: int,
-                   x0: np.ndarray, x1: np.ndarray, timeout: float) -> None:
-        sid = req["sid"]
+                   x0: np.ndarray, x1: np.ndarray, timeout: float,
+                   evaluator: tuple[str, str | None]) -> None:
+        sid, (address, instance) = req["sid"], evaluator
+        extra = {"evaluator_id": instance} if instance is not None else {}
         conn.write(messages.make("map_invocation", sid=sid, frame=req["frame"], count=count,
-                                 evaluator=self.evaluator))
+                                 evaluator=address, **extra))
         while True:
             msg, _ = await conn.recv(timeout)
             kind = msg["t"]
@@ -149,7 +134,8 @@ class OwnerInputs:
             conn.abort()
         try:
             conn = await connect(*addr, self.ctx, "garbler", "mapowner",
-                                 self.handshake_timeout)
+                                 self.handshake_timeout,
+                                 server_name=self.allowed.server_name(addr))
         except ConnectionClosed as exc:
             raise ProtocolError(PEER_LOST, f"cannot reach the map owner: {exc}") from None
         return conn, ExtSender()

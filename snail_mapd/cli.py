@@ -10,7 +10,7 @@ from snail_common.loc.mapfile import load_map
 from snail_common.loc.owner import owner_values
 from snail_common.loc.problem import ProblemError
 from snail_common.net import tls
-from snail_common.net.cli import LOG_LEVELS, address, fail, log_level_of
+from snail_common.net.cli import LOG_LEVELS, address, addresses, fail, log_level_of
 from snail_common.net.conn import format_addr
 from snail_common.net.listener import run_daemon
 from snail_common.net.logs import setup
@@ -30,6 +30,12 @@ _DEFAULTS = Options()
               help="The map (snail-map/1: point ids and 3D coordinates). It never leaves "
                    "this process in the clear: devices get their points under one-time "
                    "pads, the circuit gets the pads by oblivious transfer.")
+@click.option("--evaluator", "evaluators", multiple=True, callback=addresses,
+              metavar="NAME:PORT",
+              help="An evaluator this map owner may send the labels of its wires to "
+                   "(repeatable; a name may resolve to several replicas). The garbler "
+                   "names the replica of each session; any other is refused as forbidden. "
+                   "Default: none, and every invocation is refused.")
 @click.option("--tls-dir", required=True, type=click.Path(exists=True, file_okay=False),
               help="Directory made by 'snail-client certs' (CA and the mapowner "
                    "certificate).")
@@ -59,7 +65,7 @@ _DEFAULTS = Options()
 @click.option("-q", "--quiet", is_flag=True, help="Same as --log-level warning.")
 @click.version_option(package_name="snail")
 def main(listen: tuple[str, int], map_path: Path, tls_dir: str, max_frames: int,
-         log_level: str, **kwargs) -> None:
+         evaluators: tuple[tuple[str, int], ...], log_level: str, **kwargs) -> None:
     """Map-owner daemon: serves devices' oblivious selections of map points (each gets its
     points under pads only this daemon holds) and inputs the pads into every iteration
     circuit by oblivious transfer with the garbler (see snail_mapd.daemon)."""
@@ -77,7 +83,8 @@ def main(listen: tuple[str, int], map_path: Path, tls_dir: str, max_frames: int,
     try:
         server_ctx = tls.server_context(tls_dir, "mapowner")
         client_ctx = tls.client_context(tls_dir, "mapowner")
-        daemon = MapOwnerDaemon(options, logger, published, values, client_ctx, max_frames)
+        daemon = MapOwnerDaemon(options, logger, published, values, client_ctx, max_frames,
+                                evaluators)
     except (OSError, ValueError) as exc:
         fail(2, f"--tls-dir: {exc}", "snail-mapd")
     try:

@@ -14,7 +14,9 @@ Two kinds of peers connect (snail_common.net.messages has the catalogue):
   IKNP OT whose sender is the garbler (base OTs once per connection, the map owner as the
   base-OT sender), its choices the bits of P; it gets one label per wire, never the global
   offset, and forwards the labels to the evaluator (``owner_labels`` by sid), then answers
-  the garbler ``done``.
+  the garbler ``done``. The garbler names the evaluator replica; the map owner dials it
+  only if its own operator's ``--evaluator`` names reach it (snail_common.net.replicas),
+  else the invocation is ``forbidden``.
 
 It never receives a 2D point, a map id, a pose, a seed or the offset: no message carries
 one to it.
@@ -34,9 +36,10 @@ import numpy as np
 from snail_common.loc.owner import PublishedMap
 from snail_common.net import messages
 from snail_common.net.chunks import write_labels
-from snail_common.net.conn import Connection, connect, format_addr, parse_addr
+from snail_common.net.conn import Connection, connect, format_addr
 from snail_common.net.errors import (
     BAD_REQUEST,
+    FORBIDDEN,
     PEER_LOST,
     UNEXPECTED,
     ConnectionClosed,
@@ -45,6 +48,7 @@ from snail_common.net.errors import (
 )
 from snail_common.net.logs import event
 from snail_common.net.metrics import OK
+from snail_common.net.replicas import Address, Replicas
 from snail_common.net.service import Daemon, Options
 from snail_common.ot import ExtReceiver, ExtSender
 from snail_common.ot.carry import chunks, ot_part, pad_bits
@@ -59,10 +63,13 @@ class MapOwnerDaemon(Daemon):
     allowed = ("client", "garbler")
 
     def __init__(self, options: Options, logger: logging.Logger, published: PublishedMap,
-                 values: np.ndarray, client_ctx, max_frames: int = MAX_FRAMES) -> None:
+                 values: np.ndarray, client_ctx, max_frames: int = MAX_FRAMES,
+                 evaluators: tuple[Address, ...] = ()) -> None:
         super().__init__(options, logger)
         self.published, self.values = published, values
         self.client_ctx = client_ctx  # TLS context for the links to evaluators
+        # the only evaluators this map owner dials (its operator's --evaluator names)
+        self.evaluator_names = Replicas(evaluators, "--evaluator", "evaluator")
         self.frames: OrderedDict[bytes, np.ndarray] = OrderedDict()  # handle -> pads
         self.max_frames = max_frames
         self.evaluators: dict[tuple[str, int], Connection] = {}
@@ -143,9 +150,9 @@ class MapOwnerDaemon(Daemon):
                                                   "owner"):
                 return
 
-    def _pad_bits(self, msg: dict[str, Any]) -> tuple[np.ndarray, tuple[str, int]]:
-        """The choice bits of an invocation (its frame's pads) and the evaluator's
-        address; ProtocolError naming the field that does not fit."""
+    def _pad_bits(self, msg: dict[str, Any]) -> np.ndarray:
+        """The choice bits of an invocation (its frame's pads); ProtocolError naming the
+        field that does not fit."""
         pads = self.frames.get(msg["frame"])
         if pads is None:
             raise ProtocolError(BAD_REQUEST, "field 'frame': no selection of this map owner "
@@ -154,10 +161,7 @@ class MapOwnerDaemon(Daemon):
         if msg["count"] != len(bits):
             raise ProtocolError(BAD_REQUEST, f"field 'count': the frame has {len(bits)} "
                                              f"pad bits, not {msg['count']}")
-        try:
-            return bits, parse_addr(msg["evaluator"])
-        except ValueError as exc:
-            raise ProtocolError(BAD_REQUEST, f"field 'evaluator': {exc}") from None
+        return bits
 
     async def _base_ots(self, conn: Connection, ot: list[ExtReceiver]) -> ExtReceiver:
         """The link's OT session: base OTs (the map owner as their sender) the first time."""
@@ -178,7 +182,8 @@ class MapOwnerDaemon(Daemon):
         self.admit()
         started = False  # once OT messages flow, a failure leaves this link out of step
         try:
-            bits, evaluator = self._pad_bits(msg)
+            bits = self._pad_bits(msg)
+            evaluator = await self._locate(msg)  # before the OT: a refusal costs nothing
             started = True
             receiver = await self._base_ots(conn, ot)
             request = receiver.request(bits)
@@ -202,16 +207,26 @@ class MapOwnerDaemon(Daemon):
             record["seconds"] = time.monotonic() - t0
             self.finish("", record)
 
-    async def _forward(self, evaluator: tuple[str, int], sid: bytes,
+    async def _locate(self, msg: dict[str, Any]) -> tuple[Address, Connection]:
+        """The link to the evaluator replica the garbler named, if this map owner's
+        --evaluator names reach it (ProtocolError ``forbidden`` otherwise)."""
+        if not self.evaluator_names:
+            raise ProtocolError(FORBIDDEN, "field 'evaluator': this map owner dials no "
+                                           "evaluator; its operator must allow one "
+                                           "(--evaluator on snail-mapd)")
+        return await self.evaluator_names.locate(msg["evaluator"], msg.get("evaluator_id"),
+                                         "evaluator", self._evaluator, lambda *_: None)
+
+    async def _forward(self, evaluator: tuple[Address, Connection], sid: bytes,
                        labels: np.ndarray) -> int:
         """Send the evaluator the labels of session ``sid``; the bytes sent."""
+        addr, link = evaluator
         try:
-            link = await self._evaluator(evaluator)
             sent = write_labels(link, "owner_labels", sid, labels)
             await link.drain()
         except ConnectionClosed as exc:
             raise ProtocolError(PEER_LOST, f"the map owner cannot reach the evaluator at "
-                                           f"{format_addr(*evaluator)}: {exc}") from None
+                                           f"{format_addr(*addr)}: {exc}") from None
         return sent
 
     async def _evaluator(self, addr: tuple[str, int]) -> Connection:
@@ -221,7 +236,8 @@ class MapOwnerDaemon(Daemon):
             link = self.evaluators.get(addr)
             if link is None or link.ended or link.peer_closed():
                 link = await connect(*addr, self.client_ctx, "mapowner", "evaluator",
-                                     self.options.handshake_timeout)
+                                     self.options.handshake_timeout,
+                                     server_name=self.evaluator_names.server_name(addr))
                 self.evaluators[addr] = link
                 task = asyncio.get_running_loop().create_task(self._listen(link))
                 self._tasks.add(task)

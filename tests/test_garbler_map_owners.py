@@ -1,7 +1,8 @@
-"""The garbler dials only the map owners its operator allowed (``--map-owner``): a client
-naming another address, or any address when none is allowed, is refused by name, and the
-garbler opens no connection to it (a client must not make the server dial where it likes).
-The allowed case is the map-owner end-to-end tests (test_mapowner_e2e.py)."""
+"""The garbler dials only the map owners its operator allowed (``--map-owner``, a name
+resolved to its addresses): a client naming another address, or any address when none is
+allowed, is refused as ``forbidden``, and the garbler opens no connection to it (a client
+must not make the server dial where it likes). The end-to-end allowed case is the
+map-owner end-to-end tests (test_mapowner_e2e.py)."""
 
 from __future__ import annotations
 
@@ -18,8 +19,8 @@ from snail_client.embedded import start_daemon
 from snail_client.links import ServiceError
 from snail_common.circuit import registry
 from snail_common.net import errors
+from snail_common.net.replicas import address_key
 from snail_common.net.tls import make_certs
-from snail_garbler.owner import address_key
 
 CIRCUIT = "loc/lm-sil-ldlt-n4-mo"  # the smallest map-owner circuit
 NOT_ALLOWED = "the operator must allow it (--map-owner on the garbler)"
@@ -87,25 +88,41 @@ def request_map_owner(garbler, evaluator, tls_dir, map_owner: str) -> ServiceErr
     return failed.value
 
 
-@pytest.mark.parametrize("allowed, words", [
-    ((), "none is allowed"),
-    # names are compared, not resolved: the client must name it as the operator did
-    (("127.0.0.2:{port}", "localhost:{port}"), "127.0.0.1:{port} is not a map owner this "
-                                               "garbler may dial"),
-], ids=["none_allowed", "another_allowed"])
+@pytest.mark.parametrize("allowed, named, words", [
+    ((), "127.0.0.1:{port}", "none is allowed"),
+    (("127.0.0.2:{port}",), "127.0.0.1:{port}",
+     "127.0.0.1:{port} is not a map owner this server may dial"),
+    # a client's host name is compared with the operator's names, never resolved
+    (("127.0.0.1:{port}",), "localhost:{port}",
+     "localhost:{port} is not a map owner this server may dial"),
+], ids=["none_allowed", "another_allowed", "client_name_not_resolved"])
 def test_a_map_owner_not_allowed_is_refused_and_never_dialled(tmp_path, tls_dir, evaluator,
-                                                              listener, allowed, words):
+                                                              listener, allowed, named,
+                                                              words):
     flags = [arg for addr in allowed
              for arg in ("--map-owner", addr.format(port=listener.port))]
+    named = named.format(port=listener.port)
     with garbler(tmp_path, tls_dir, evaluator, *flags) as daemon:
-        error = request_map_owner(daemon, evaluator, tls_dir, f"127.0.0.1:{listener.port}")
-        assert error.code == errors.BAD_REQUEST
-        assert "field 'map_owner'" in str(error) and NOT_ALLOWED in str(error)
+        error = request_map_owner(daemon, evaluator, tls_dir, named)
+        assert error.code == errors.FORBIDDEN
+        assert "field 'map_owner'" in str(error)
         assert words.format(port=listener.port) in str(error)
         assert listener.dialled() == 0
         # the garbler serves on: the next client is refused the same way
+        error = request_map_owner(daemon, evaluator, tls_dir, named)
+        assert error.code == errors.FORBIDDEN and listener.dialled() == 0
+
+
+def test_a_map_owner_allowed_by_name_is_reached_at_the_address_it_resolves_to(
+        tmp_path, tls_dir, evaluator, listener):
+    """The operator names the map owner (``localhost``, as a service name); a client that
+    reached it at one of the addresses the name resolves to may name that address."""
+    with garbler(tmp_path, tls_dir, evaluator, "--map-owner",
+                 f"localhost:{listener.port}") as daemon:
         error = request_map_owner(daemon, evaluator, tls_dir, f"127.0.0.1:{listener.port}")
-        assert error.code == errors.BAD_REQUEST and listener.dialled() == 0
+        # dialled: the listener is no map owner, so the TLS opening fails after it
+        assert error.code == errors.PEER_LOST and "map owner" in str(error)
+        assert listener.dialled() == 1
 
 
 def test_addresses_are_compared_after_parsing():
@@ -136,4 +153,4 @@ def test_help_says_why_and_how_to_name_a_map_owner():
     assert "--map-owner HOST:PORT" in text and "(repeatable)" in text
     assert "no client can make it connect wherever it likes" in text
     assert "map-owner sessions are refused" in text
-    assert "'localhost' is not '127.0.0.1'" in text
+    assert "a client's own host name is compared, never resolved" in text

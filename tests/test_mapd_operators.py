@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_garbler_map_owners import Listener
 from test_service_e2e import BAD_FRAMES, hello, raw, read_msg
 
 from snail_client.embedded import start_daemon
@@ -155,6 +156,35 @@ def test_a_selection_of_ragged_size_and_a_wrong_count_are_named(daemon, tls_dir)
         assert reply["code"] == errors.BAD_REQUEST and "'count'" in reply["message"]
         assert "384" in reply["message"]  # 4 points, 96 pad bits each
     assert_serves(daemon, tls_dir)
+
+
+def test_the_map_owner_sends_labels_only_to_evaluators_its_operator_allowed(
+        tmp_path, daemon, tls_dir):
+    """The garbler names the evaluator replica of each invocation; the map owner dials it
+    only if its own --evaluator names reach it: none allowed, or another address, is
+    ``forbidden`` before any OT or connection."""
+    target = Listener()
+    (tmp_path / "map.json").write_text(json.dumps(MAP))
+    allowed = start_daemon("mapd", ["--map", str(tmp_path / "map.json"), "--tls-dir",
+                                    str(tls_dir), "--evaluator", f"127.0.0.2:{target.port}"],
+                           tmp_path / "mapd.log")
+    try:
+        for running, words in ((daemon, "dials no evaluator"),
+                               (allowed, f"127.0.0.1:{target.port} is not an evaluator "
+                                         f"this server may dial")):
+            with MapOwnerLink(running.address, tls_dir) as link:
+                link.open()
+                handle, _ = link.select(np.array([10, 11, 12, 13]))
+            with contextlib.closing(raw(running.address, tls_dir, "garbler")) as sock:
+                hello(sock, "garbler")
+                reply = _send(sock, "map_invocation", sid=SID, frame=handle, count=384,
+                              evaluator=f"127.0.0.1:{target.port}")
+                assert reply["code"] == errors.FORBIDDEN, reply
+                assert words in reply["message"] and "--evaluator" in reply["message"]
+        assert target.dialled() == 0
+    finally:
+        allowed.stop()
+        target.close()
 
 
 ORPHAN_STARTER = """

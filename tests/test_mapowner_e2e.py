@@ -125,7 +125,7 @@ def map_owner(servers, points: mapfile.MapPoints, tmp_path: Path
     _, tls_dir, evaluator = servers
     mapd = start_recorded("mapd", tmp_path, "--map", str(write_map(points, tmp_path /
                                                                     "map.json")),
-                          "--tls-dir", str(tls_dir))
+                          "--tls-dir", str(tls_dir), "--evaluator", evaluator.address)
     try:
         garbler = start_recorded("garbler", tmp_path, "--evaluator", evaluator.address,
                                  "--map-owner", mapd.address, "--tls-dir", str(tls_dir))

@@ -72,7 +72,7 @@ def test_a_clients_links_are_cubic_at_both_ends_and_the_table_stream_is_not(serv
         async with AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
                                      services.tls_dir, timeout=60) as r:
             await r.invoke(CIRCUIT, np.zeros(n, bool))
-            links = {role: r._links[role].conn.transport.get_extra_info("socket")
+            links = {role: r.replicas[role].any_link().conn.transport.get_extra_info("socket")
                      for role in ("garbler", "evaluator")}
             ports = {role: s.getsockname()[1] for role, s in links.items()}
             mine = {role: _congestion(s) for role, s in links.items()}

@@ -18,6 +18,7 @@ from daemons import sigint_default
 from shared_paths import EXAMPLES
 
 from snail_bench.netlab.namespaces import (
+    LINKS,
     Lab,
     LabUnavailable,
     Shape,
@@ -76,6 +77,69 @@ def test_the_shaped_link_is_measured(lab):
     assert 40 <= shaped["rtt_ms"] < 60, shaped
     assert plain["rtt_ms"] < 5, plain
     assert shaped["rate_mbit"] > 1 and plain["rate_mbit"] > 1
+
+
+def test_unshaped_links_are_direct_and_the_control_run_crosses_the_forwarder():
+    """Unshaped, a link's ends are bridged in the kernel (no forwarder runs); the control
+    run sends every link through the forwarder at zero delay, and its CPU is counted."""
+    with Lab("forwarder") as lab:
+        lab.shape({link: Shape() for link in LINKS})
+        assert not lab.running_wire() and lab.wire_cpu_s() == 0
+        bridged = subprocess.run(["ip", "-n", lab.ns["wire"], "link", "show", "master",
+                                  lab.bridge("garbler_evaluator")], capture_output=True,
+                                 text=True).stdout
+        assert "ge-g" in bridged and "ge-e" in bridged
+        lab.shape({link: Shape() for link in LINKS}, control=True)
+        assert lab.running_wire() and lab.forwarder in ("native", "python")
+        unbridged = subprocess.run(["ip", "-n", lab.ns["wire"], "link", "show", "master",
+                                    lab.bridge("garbler_evaluator")], capture_output=True,
+                                   text=True).stdout
+        assert "ge-g" not in unbridged
+        measured = lab.measure("garbler_evaluator", seconds=0.3)
+        assert measured["rtt_ms"] < 5 and measured["rate_mbit"] > 100
+        assert lab.wire_cpu_s() > 0  # the blast crossed it
+        lab.shape({"garbler_evaluator": Shape(delay_ms=10)})  # a shaped run: only the
+        assert lab.running_wire()  # delayed link is forwarded, the others are bridged
+        assert 20 <= lab.measure("garbler_evaluator", seconds=0.2)["rtt_ms"] < 30
+        assert lab.measure("client_evaluator", seconds=0.2)["rtt_ms"] < 5
+    assert lab.leftovers() == []
+
+
+def test_the_control_run_the_wait_and_the_scheme_are_in_the_json():
+    """netem --json: the shaper, the control run through the forwarder beside the direct
+    one, the forwarder's CPU, and per circuit the evaluator's wait for tables (never
+    subtracted from the wall time) and the scheme its sessions used."""
+    proc = subprocess.run([sys.executable, "-m", "snail_bench.cli", "-q", "netem",
+                           "--points", "6", "--repeat", "2", "--server-delay-ms", "2",
+                           "--measure-seconds", "0.2", "--json"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    body = json.loads(proc.stdout)["netem"]
+    assert body["shaper"] in ("netem", "forwarder") and body["profile"] is None
+    for phase in (body, body["unshaped"], body["control"]):
+        row = phase["service"]["nx-sil-n6"]
+        assert row["evaluator_wait_s"] >= 0 and row["scheme"] in ("halfgates", "threehalves")
+        assert row["median_s"] >= row["evaluator_wait_s"]
+        assert phase["wire_cpu_s"] >= 0
+    assert body["unshaped"]["wire_cpu_s"] == 0  # direct: nothing in user space
+    if body["shaper"] == "forwarder":
+        assert body["control"]["wire_cpu_s"] > 0 and body["forwarder"] in ("native",
+                                                                           "python")
+    assert "first table received" in body["service"]["nx-sil-n6"]["timeline_ms"]
+
+
+def test_the_netem_shaper_where_the_kernel_has_it():
+    with Lab() as probe:
+        chosen = probe.shaper
+    if chosen != "netem":
+        pytest.skip("this kernel has no sch_netem: the lab chose the forwarder (the "
+                    "choice itself is tested in test_netlab_shaper.py)")
+    with Lab("netem") as lab:
+        lab.shape({"garbler_evaluator": Shape(delay_ms=20, rate_mbit=500)})
+        assert not lab.running_wire()
+        assert "netem" in lab.qdiscs("garbler") and "netem" in lab.qdiscs("evaluator")
+        measured = lab.measure("garbler_evaluator", seconds=0.5)
+        assert 40 <= measured["rtt_ms"] < 60 and measured["rate_mbit"] < 600
 
 
 def _localize(*args: str, prefix: tuple[str, ...] = ()) -> dict:

@@ -79,3 +79,53 @@ def test_a_missing_paper_file_is_one_line_exit_2(tmp_path):
 
 def test_the_paper_file_is_the_shared_one():
     assert json.loads(PAPER_RESULTS.read_text())["emp_sil_0ms"]["n"][0] == 6
+
+
+def test_every_series_is_drawn_in_a_style_of_its_own(tmp_path, monkeypatch):
+    """Ours LM and GN per iteration differ by a few AND gates: drawn alike, LM vanished
+    under GN. Each series now has its own line style, marker and colour."""
+    pytest.importorskip("matplotlib", reason="the bench extra (matplotlib) is not installed")
+    from snail_bench import paper_plot
+
+    styles: dict[str, list[tuple]] = {}
+    save = paper_plot._save
+
+    def keep(plt, fig, out, name):
+        styles[name] = [(tuple(line.get_xdata()), tuple(line.get_ydata()),
+                         line.get_linestyle(), line.get_marker())
+                        for ax in fig.axes for line in ax.get_lines()]
+        save(plt, fig, out, name)
+
+    monkeypatch.setattr(paper_plot, "_save", keep)
+    results = _results()
+    series = results["sweep"]["series"]
+    for d in ("0ms", "5ms"):  # GN exactly where LM is: the case that hid LM
+        series[f"gn_{d}"] = [dict(r) for r in series[f"lm_{d}"]]
+    results["totals"]["sil"]["gn-sil-ldlt-n6"] = {"algorithm": "gn", "n": 6,
+                                                  "total_s": 4.61, "per_iteration_s": 0.2,
+                                                  "and": 5}
+    paper_plot.write_figures(results, load_paper(PAPER_RESULTS), tmp_path)
+    coinciding = 0
+    for name, lines in styles.items():
+        for i, a in enumerate(lines):
+            for b in lines[i + 1:]:
+                if a[:2] == b[:2]:  # drawn at the same points: the styles must differ
+                    coinciding += 1
+                    assert a[2:] != b[2:], (name, a[2:])
+    assert coinciding >= 3  # ours LM and GN at 0 and 5 ms, bytes per iteration
+
+
+def test_the_profiles_figure_sets_each_localization_against_its_bound(tmp_path):
+    pytest.importorskip("matplotlib", reason="the bench extra (matplotlib) is not installed")
+    from snail_bench import paper_plot
+
+    def loc(wall: float, bound: float) -> dict:
+        return {"wall_s": wall, "link_bound_s": bound, "bound_ratio": round(wall / bound, 3),
+                "invocations": 20, "bytes": {"garbler_to_evaluator": 112_500_000}}
+
+    results = _results()
+    results["profiles"] = {"points": [6, 12], "region": {"localization": {
+        "6": loc(1.1, 0.9), "12": loc(1.5, 1.2)}}}
+    text = "\n".join(paper_plot.write_figures(results, load_paper(PAPER_RESULTS), tmp_path))
+    assert (tmp_path / "profiles.png").read_bytes()[:4] == b"\x89PNG"
+    assert "| region | 6 | 20 | 112.5 | 0.900 | 1.100 | 1.22 |" in text

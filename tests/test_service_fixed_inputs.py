@@ -12,7 +12,7 @@ import pytest
 
 from snail_client.localize import GarbledBackend
 from snail_client.secure import AsyncSecureRunner
-from snail_client.sessions import FixedInputs
+from snail_client.sessions import FixedInputs, Invocation
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.loc.backends import frame_inputs, frame_wires, interface, shared_bits, sil_values
 from snail_common.loc.types import Normalized, Pose
@@ -110,9 +110,9 @@ class _Recorder:
     def fixed(self, circuit_id: str) -> FixedInputs | None:
         return self.declared.get(circuit_id)
 
-    def run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
+    def invoke(self, circuit_id: str, bits: np.ndarray) -> Invocation:
         self.runs.append(bits)
-        return np.zeros(self.n_outputs, bool)
+        return Invocation(np.zeros(self.n_outputs, bool), {}, 0.0)
 
 
 def test_a_frames_inputs_but_the_pose_are_fixed_and_padding_keeps_them():

@@ -127,6 +127,12 @@ def test_each_session_is_one_log_line_and_counted_in_metrics(services, robot):
     # the garbler's table bytes out are the evaluator's table bytes in (plus framing)
     g, e = _sessions(services.garbler.log)[0], _sessions(services.evaluator.log)[0]
     assert e["bytes_in"] >= 32 * g["and"] and g["bytes_out"] >= 32 * g["and"]
+    # both lines name the scheme and carry the session's timeline, in the order of events
+    assert g["scheme"] == e["scheme"] == "halfgates"  # auto, before anything is measured
+    gt, et = g["timeline"], e["timeline"]
+    assert gt["request"] <= gt["first_sent"] <= gt["last_sent"]
+    assert gt["first_sent"] <= et["first_received"] <= et["last_received"] <= et["eval_end"]
+    assert et["labels"] <= et["eval_end"]
 
     port = _metrics_port(services.evaluator.log)
     status, text = _get(port, "/metrics", services.tls_dir)

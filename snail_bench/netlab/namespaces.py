@@ -2,17 +2,23 @@
 namespaces of their own, each pair joined by a link shaped on its own.
 
 A link ``X_Y`` is two veth pairs through a fourth, middle namespace (the wire):
-``X:to-Y <-> wire:xy-x | forwarder | wire:xy-y <-> Y:to-X``. X and Y hold addresses in
-10.99.L.0/24 (L the link's index); these exist only inside the lab's namespaces, and no
-namespace has a route out. Rate is tbf on both endpoints (each direction its own bucket);
-delay, jitter and loss are applied by the wire process (``wire.py``: this kernel has no
-netem). Namespace names carry the pid, so concurrent labs never meet and a lab left by a
-killed process (SIGKILL leaves no chance to tear down) is told by its owner being gone:
-a new lab removes such leftovers first (``reap_stale``).
+``X:to-Y <-> wire:xy-x | bridge or forwarder | wire:xy-y <-> Y:to-X``. X and Y hold
+addresses in 10.99.L.0/24 (L the link's index); these exist only inside the lab's
+namespaces, and no namespace has a route out. In the wire namespace a link's two ends are
+either joined by a kernel bridge (the direct path: nothing in user space touches a frame)
+or handed to the lab's forwarder (``wire.c``, else ``wire.py``), which delays, jitters and
+drops frames. Which shaper a lab uses is chosen once (``shaper.py``): with ``tc netem``
+where the kernel has it (every link bridged, netem on both endpoints), else the forwarder
+for the links that need delay, jitter or loss, with tbf on the endpoints for a rate. A
+control run (``shape(..., control=True)``) sends every link through the shaper with zero
+delay and no rate, so the shaper's own cost shows beside the direct run. Namespace names
+carry the pid, so concurrent labs never meet and a lab left by a killed process (SIGKILL
+leaves no chance to tear down) is told by its owner being gone: a new lab removes such
+leftovers first (``reap_stale``).
 
 ``Lab`` is a context manager: leaving it by any path (an exception, Ctrl-C, SIGTERM)
 stops the processes it started and deletes every namespace it made, which takes their
-veths and qdiscs with them; ``leftovers()`` says what would remain.
+veths, bridges and qdiscs with them; ``leftovers()`` says what would remain.
 """
 
 from __future__ import annotations
@@ -31,13 +37,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 
+from . import shaper as shapers
+from .wire_native import wire_command
+
 ROLES = ("client", "garbler", "evaluator")
 LINKS: dict[str, tuple[str, str]] = {"client_garbler": ("client", "garbler"),
                                      "client_evaluator": ("client", "evaluator"),
                                      "garbler_evaluator": ("garbler", "evaluator")}
 CAP_NET_ADMIN, CAP_SYS_ADMIN = 12, 21
-TBF_LATENCY_MS = 100  # how long a packet may queue in the rate limiter before it drops
 READY_TIMEOUT = 10.0
+WIRE_PRIORITY = 10  # SCHED_FIFO priority of the forwarder (1-99)
 PROBE_PORT = 5201  # the probe server's port (inside the lab's fresh namespaces)
 _serial = itertools.count()
 
@@ -131,7 +140,15 @@ def reap_stale() -> list[str]:
 class Lab:
     """The namespaces, links, wire process and daemons of one lab (see the module doc)."""
 
-    def __init__(self) -> None:
+    def __init__(self, shaper: str = "auto", native_wire: bool = True) -> None:
+        if shaper not in shapers.SHAPERS:
+            raise ValueError(f"shaper must be one of {', '.join(shapers.SHAPERS)}, "
+                             f"got {shaper!r}")
+        self.requested = shaper
+        self.shaper = ""  # "netem" or "forwarder", once the lab is built
+        self.native_wire = native_wire
+        self.forwarder = ""  # "native" or "python", once a forwarder ran
+        self.control = False  # every link through the shaper at zero delay and rate
         self.tag = f"snail-{os.getpid()}-{next(_serial)}"
         self.ns = {role: f"{self.tag}-{role}" for role in (*ROLES, "wire")}
         self.shapes: dict[str, Shape] = {link: Shape() for link in LINKS}
@@ -150,6 +167,12 @@ class Lab:
     def wire_ifname(link: str, role: str) -> str:
         a, b = LINKS[link]
         return f"{a[0]}{b[0]}-{role[0]}"
+
+    @staticmethod
+    def bridge(link: str) -> str:
+        """The bridge in the wire namespace that joins ``link``'s ends directly."""
+        a, b = LINKS[link]
+        return f"{a[0]}{b[0]}-br"
 
     @staticmethod
     def address(link: str, role: str) -> str:
@@ -199,7 +222,15 @@ class Lab:
                      f"{self.address(link, role)}/24", "dev", inner)
                 _run("ip", "-n", self.ns[role], "link", "set", inner, "up")
                 _run("ip", "-n", wire, "link", "set", outer, "up")
-        self._start_wire()
+            bridge = self.bridge(link)
+            _run("ip", "-n", wire, "link", "add", bridge, "type", "bridge",
+                 "forward_delay", "0")
+            _run("ip", "-n", wire, "link", "set", bridge, "up")
+            self._join(link, True)
+        try:
+            self.shaper = shapers.choose(self.requested, shapers.netem_probe(wire))
+        except shapers.ShaperUnavailable as exc:
+            raise LabUnavailable(str(exc)) from None
 
     def close(self) -> None:
         """Stop every process the lab started and delete its namespaces (idempotent)."""
@@ -227,77 +258,88 @@ class Lab:
         return [name for name in netns_list() if name.startswith(self.tag + "-")]
 
     # shaping ---------------------------------------------------------------------------
-    def shape(self, shapes: Mapping[str, Shape]) -> None:
-        """Set the shaping of the named links (others keep theirs): tbf on both ends of
-        a link with a rate, none without; the wire restarted with the new delays."""
+    def shape(self, shapes: Mapping[str, Shape], control: bool = False) -> None:
+        """Set the shaping of the named links (others keep theirs). ``control``: every
+        link through the shaper as configured, but with zero delay and no rate (a
+        zero shape sends nothing through the forwarder otherwise)."""
         for link, shape in shapes.items():
             if link not in LINKS:
                 raise ValueError(f"unknown link {link!r}; links: {', '.join(LINKS)}")
             self.shapes[link] = shape
+        self.control = control
+        self._stop_wire()
+        wired = []
+        for link, shape in self.shapes.items():
+            through = control or shape != Shape()
+            delayed = control or (shape.delay_ms, shape.jitter_ms, shape.loss_pct) != (0, 0, 0)
             for role, peer in (LINKS[link], LINKS[link][::-1]):
-                self._rate(role, self.ifname(role, peer), shape.rate_mbit)
-        self._start_wire()
+                dev, ns = self.ifname(role, peer), self.ns[role]
+                if not through:
+                    args = None
+                elif self.shaper == "netem":
+                    args = shapers.netem_args(shape.delay_ms, shape.jitter_ms,
+                                              shape.loss_pct, shape.rate_mbit)
+                else:
+                    args = None if shape.rate_mbit is None else shapers.tbf_args(
+                        shape.rate_mbit)
+                if args is None:
+                    subprocess.run(("tc", "-n", ns, "qdisc", "del", "dev", dev, "root"),
+                                   capture_output=True)  # none set is fine
+                else:
+                    _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", *args)
+            forwarded = self.shaper == "forwarder" and delayed
+            self._join(link, not forwarded)
+            if forwarded:
+                wired.append(link)
+        if wired:
+            self._start_wire(wired)
 
-    def _rate(self, role: str, dev: str, rate_mbit: float | None) -> None:
-        ns = self.ns[role]
-        if rate_mbit is None:
-            subprocess.run(("tc", "-n", ns, "qdisc", "del", "dev", dev, "root"),
-                           capture_output=True)  # none set is fine
-            return
-        rate_bytes = rate_mbit * 1e6 / 8
-        burst = max(int(rate_bytes / 250), 2 * 65536 + 1514)  # 4 ms, and two GSO frames
-        _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "tbf",
-             "rate", f"{rate_mbit}mbit", "burst", str(burst), "latency", f"{TBF_LATENCY_MS}ms")
+    def _join(self, link: str, bridged: bool) -> None:
+        """Join ``link``'s two wire-side ends by its bridge, or free them for the
+        forwarder (a bridged end would forward each frame a second time)."""
+        for role in LINKS[link]:
+            master = ("master", self.bridge(link)) if bridged else ("nomaster",)
+            _run("ip", "-n", self.ns["wire"], "link", "set", self.wire_ifname(link, role),
+                 *master)
 
-    def tune_tcp(self, congestion: str | None = None,
-                 slow_start_after_idle: bool | None = None) -> None:
-        """TCP as the hosts would be tuned, inside the lab only: ``congestion`` control on
-        every lab route (``ip route ... congctl``), ``net.ipv4.tcp_slow_start_after_idle``
-        in every role's namespace; None keeps the kernel's default."""
-        for role in ROLES:
-            ns = self.ns[role]
-            if slow_start_after_idle is not None:
-                _run("ip", "netns", "exec", ns, "sysctl", "-q", "-w",
-                     f"net.ipv4.tcp_slow_start_after_idle={int(slow_start_after_idle)}")
-            if congestion is None:
-                continue
-            for link, pair in LINKS.items():
-                if role not in pair:
-                    continue
-                peer = pair[1 - pair.index(role)]
-                prefix = self.address(link, role).rsplit(".", 1)[0] + ".0/24"
-                _run("ip", "-n", ns, "route", "replace", prefix, "dev",
-                     self.ifname(role, peer), "proto", "kernel", "scope", "link",
-                     "src", self.address(link, role), "congctl", congestion)
+    def running_wire(self) -> bool:
+        """Whether the forwarder carries any link now."""
+        return self._wire is not None
 
-    def tcp_settings(self) -> dict[str, object]:
-        """The client's congestion control and slow-start-after-idle, as TCP will use
-        them on the lab's links (measured, not what was asked for)."""
-        ns = self.ns["client"]
-        route = _run("ip", "-n", ns, "route", "show", "dev", self.ifname("client", "evaluator"))
-        congctl = re.search(r"congctl (\S+)", route)
-        default = _run("ip", "netns", "exec", ns, "sysctl", "-n",
-                       "net.ipv4.tcp_congestion_control").strip()
-        idle = _run("ip", "netns", "exec", ns, "sysctl", "-n",
-                    "net.ipv4.tcp_slow_start_after_idle").strip()
-        return {"congestion_control": congctl.group(1) if congctl else default,
-                "slow_start_after_idle": idle == "1"}
+    def wire_cpu_s(self) -> float:
+        """CPU seconds (user and system) the running forwarder has used (0: none runs)."""
+        if self._wire is None:
+            return 0.0
+        try:
+            fields = Path(f"/proc/{self._wire.pid}/stat").read_text().rsplit(")", 1)[1]
+        except OSError:
+            return 0.0
+        user, system = fields.split()[11:13]
+        return (int(user) + int(system)) / os.sysconf("SC_CLK_TCK")
 
     def qdiscs(self, role: str) -> str:
         """``tc qdisc show`` inside ``role``'s namespace."""
         return _run("tc", "-n", self.ns[role], "qdisc", "show")
 
-    def _start_wire(self) -> None:
+    def _stop_wire(self) -> None:
         if self._wire is not None:
             _stop(self._wire)
             self._wire = None
+
+    def _start_wire(self, links: list[str]) -> None:
+        """The forwarder on ``links`` (with their delay, jitter and loss; zero in a
+        control run), at real-time priority where allowed: a wire is not a process that
+        waits for the hosts' cores, and a descheduled one would add its own delay."""
         args = []
-        for link, shape in self.shapes.items():
+        for link in links:
             a, b = LINKS[link]
+            shape = Shape() if self.control else self.shapes[link]
             args += ["--link", f"{self.wire_ifname(link, a)},{self.wire_ifname(link, b)},"
                                f"{shape.delay_ms},{shape.jitter_ms},{shape.loss_pct}"]
-        self._wire = self.spawn("wire", [sys.executable, "-m", "snail_bench.netlab.wire",
-                                         *args], track=False)
+        command, self.forwarder = wire_command(self.native_wire)
+        self._wire = self.spawn("wire", [*command, *args], track=False)
+        with contextlib.suppress(OSError, AttributeError):
+            os.sched_setscheduler(self._wire.pid, os.SCHED_FIFO, os.sched_param(WIRE_PRIORITY))
 
     # processes -------------------------------------------------------------------------
     def spawn(self, role: str, cmd: list[str], track: bool = True) -> subprocess.Popen:

@@ -27,6 +27,7 @@ from snail_common.pnp.normal_fixed import decode, map_fixed, weight_unit, weight
 from snail_common.pnp.sil import CLIENT, ITERATION_INPUTS, takes_map_as_integers
 from snail_common.pnp.spec import Spec, integer_outputs, run_mirror
 
+from .geometry import hat, so3_exp
 from .types import Normalized, Pose
 
 Values = dict[str, np.ndarray]
@@ -101,12 +102,45 @@ def _own(iface: Interface, values: Values) -> Values:
 def circuit_outputs(spec: Spec, values: Values, out: Values) -> Values:
     """A circuit's outputs as the float circuit names them: fixed-point sums decoded with
     the weights they were computed with; the in-circuit solve's cost, of the normalized
-    weights, times their unit."""
+    weights, times their unit. The fixed-point circuits rotate about the map's origin
+    (normal_fixed.py): their sums and steps come back in types.py's terms here."""
     if integer_outputs(spec):
-        return decode(values["weights"], out)
+        sums = decode(values["weights"], int(values["emap"]), out)
+        hess, grad = about_camera(_full(sums["hess"]), sums["grad"], values["t"])
+        return {**sums, "hess": hess[tuple(np.array(UPPER).T)], "grad": grad}
     if spec.arith == "fixed":
-        return {**out, "cost": np.float64(out["cost"]) * weight_unit(values["weights"])}
+        return {**out, "step": step_about_camera(out["step"], values["t"]),
+                "cost": np.float64(out["cost"]) * weight_unit(values["weights"])}
     return out
+
+
+def about_camera(hess: np.ndarray, grad: np.ndarray,
+                 t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """J^T W J (6, 6) and J^T W r of the step (v', w) that rotates about the map's origin,
+    t' = t + v', as those of types.py's (v, w), t' = exp(w) t + v: to first order
+    v' = v - [t]x w, so J = J' T with T = [[I, -[t]x], [0, I]]. In float64 this loses
+    nothing of what the circuit computed, however ill-conditioned the result (one tag far
+    away: rotation and translation nearly alike, which is why the circuit does not sum
+    them so)."""
+    T = np.eye(6)
+    T[:3, 3:] = -hat(np.asarray(t, np.float64))
+    return T.T @ hess @ T, T.T @ grad
+
+
+def step_about_camera(step: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The step (v', w) about the map's origin (R' = exp(w) R, t' = t + v') as types.py's
+    (v, w), exactly: v = t + v' - exp(w) t."""
+    step = np.asarray(step, np.float64)
+    t = np.asarray(t, np.float64)
+    return np.concatenate([t + step[:3] - so3_exp(step[3:]) @ t, step[3:]])
+
+
+def _full(packed: np.ndarray) -> np.ndarray:
+    full = np.zeros((6, 6))
+    rows, cols = np.array(UPPER).T
+    full[rows, cols] = np.asarray(packed, np.float64)
+    full[cols, rows] = full[rows, cols]
+    return full
 
 
 class Backend:

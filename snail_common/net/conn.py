@@ -304,14 +304,18 @@ class Connection(asyncio.BufferedProtocol):
 
 
 async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_role: str,
-                  timeout: float = 10.0, max_frame: int = MAX_FRAME) -> Connection:
+                  timeout: float = 10.0, max_frame: int = MAX_FRAME,
+                  server_name: str | None = None) -> Connection:
     """Open a TLS connection as ``role`` to a server that must be ``expect_role``;
-    returns it after the hello/capabilities exchange."""
+    returns it after the hello/capabilities exchange. The server's certificate must name
+    ``server_name`` (default ``host``): a replica dialled at the address a service name
+    resolved to is checked against the service name, which its certificate carries."""
     where = f"the {expect_role} at {format_addr(host, port)}"
     try:
         _, conn = await asyncio.wait_for(_open(
             lambda: Connection(max_frame), host, port, ctx, timeout,
-            bursts=role in BURST_ROLES or expect_role in BURST_ROLES), timeout)
+            bursts=role in BURST_ROLES or expect_role in BURST_ROLES,
+            server_name=server_name or host), timeout)
     except asyncio.TimeoutError:
         raise ConnectionClosed(f"connecting to {where} timed out") from None
     except (OSError, ssl.SSLError) as exc:
@@ -331,12 +335,14 @@ async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_r
 
 
 async def _open(factory: Callable[[], Connection], host: str, port: int,
-                ctx: ssl.SSLContext, timeout: float, bursts: bool) -> tuple[Any, Connection]:
+                ctx: ssl.SSLContext, timeout: float, bursts: bool,
+                server_name: str) -> tuple[Any, Connection]:
     """create_connection, on a socket set up for small bursts before it connects when
     ``bursts`` (module doc)."""
     loop = asyncio.get_running_loop()
     if not bursts:
-        return await loop.create_connection(factory, host, port, ssl=ctx, server_hostname=host,
+        return await loop.create_connection(factory, host, port, ssl=ctx,
+                                            server_hostname=server_name,
                                             ssl_handshake_timeout=timeout)
     failure: OSError = OSError(f"no address for {host}")
     for family, kind, proto, _, addr in await loop.getaddrinfo(host, port,
@@ -353,7 +359,8 @@ async def _open(factory: Callable[[], Connection], host: str, port: int,
         except BaseException:
             sock.close()
             raise
-        return await loop.create_connection(factory, sock=sock, ssl=ctx, server_hostname=host,
+        return await loop.create_connection(factory, sock=sock, ssl=ctx,
+                                            server_hostname=server_name,
                                             ssl_handshake_timeout=timeout)
     raise failure
 

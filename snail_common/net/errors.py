@@ -10,13 +10,14 @@ UNKNOWN_TYPE = "unknown_type"
 MISSING_FIELD = "missing_field"
 UNKNOWN_FIELD = "unknown_field"
 UNEXPECTED = "unexpected"  # a valid message this peer may not send here or now
-FORBIDDEN = "forbidden"  # the peer certificate's role may not do this
+FORBIDDEN = "forbidden"  # the peer's role may not do this, or dial that address
 UNKNOWN_CIRCUIT = "unknown_circuit"
 TOO_LARGE = "too_large"  # the circuit has more AND gates than this server compiles
 CIRCUIT_MISMATCH = "circuit_mismatch"  # content hash differs between peers
 BAD_REQUEST = "bad_request"  # well-formed but invalid values (delta parity, label count ...)
 DUPLICATE_SESSION = "duplicate_session"
 BUSY = "busy"  # max sessions reached
+DRAINING = "draining"  # stopping (SIGTERM): finishes its sessions, takes no new ones
 TIMEOUT = "timeout"
 PEER_LOST = "peer_lost"  # the other server went away mid-session
 ABORTED = "aborted"  # cancelled by a peer
@@ -24,6 +25,8 @@ STREAM = "stream"  # the garbled-table stream does not fit the circuit
 REVOKED = "revoked"  # the peer certificate is listed in revoked.txt
 SHUTDOWN = "shutdown"
 INTERNAL = "internal"
+# a session refused or lost for one of these may succeed on another replica at once
+RETRYABLE = frozenset({BUSY, DRAINING, PEER_LOST, SHUTDOWN, TIMEOUT})
 
 
 class ProtocolError(Exception):

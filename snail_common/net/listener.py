@@ -1,8 +1,10 @@
 """A daemon's life as a TLS server: listening, admitting verified peers, revocation,
 the metrics endpoint and shutdown.
 
-SIGTERM/SIGINT stop accepting, let running sessions finish for up to ``grace`` seconds,
-then say ``bye`` to every peer and exit. SIGHUP rereads ``revoked.txt`` and drops the
+SIGTERM drains: new sessions are refused as ``draining`` (retryable on another replica),
+those under way finish for up to ``grace`` seconds (the listener stays open for the
+connections they still need), then every peer gets ``bye`` and the daemon exits 0.
+SIGINT ends the sessions at once. SIGHUP rereads ``revoked.txt`` and drops the
 connections of peers it now lists. What a connection carries is the subclass's business
 (``serve``); ``service.Daemon`` adds circuits, workers and session bookkeeping.
 """
@@ -13,6 +15,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import secrets
 import signal
 import ssl
 import sys
@@ -58,6 +61,9 @@ class Listener:
         self.started = time.monotonic()
         self.stopping = asyncio.Event()
         self.interrupted = False
+        # who this replica is: announced in capabilities, so that a client can name it to
+        # the garbler, and a replica restarted on the same address is told apart
+        self.instance = secrets.token_hex(8)
 
     # ---- what the subclass provides ------------------------------------------------------
     def capabilities(self) -> dict[str, Any]:
@@ -152,19 +158,26 @@ class Listener:
         for sock in server.sockets:  # accepted links inherit it (conn.py module doc)
             prefer_bursts(sock)
         announce(self.log, "listening", host=host, port=server.sockets[0].getsockname()[1],
-                 pid=os.getpid(), max_sessions=self.options.max_sessions,
+                 pid=os.getpid(), instance=self.instance,
+                 max_sessions=self.options.max_sessions,
                  max_and_gates=self.options.max_and_gates,
                  workers=self.options.workers, revoked=len(self.revoked),
                  **self.startup_fields())
         scrapes = await self._serve_metrics()
         await self.stopping.wait()
-        if scrapes is not None:
-            scrapes.close()
-        event(self.log, "shutting_down", active=self.counters["active"])
-        server.close()
+        event(self.log, "shutting_down", active=self.counters["active"],
+              draining=not self.interrupted)
+        # draining: the listener stays open while sessions finish, since a session under
+        # way may still need a connection (the garbler streaming to the evaluator that
+        # admitted its client's half, the map owner's labels); new sessions are refused
+        if self.interrupted:
+            server.close()
         deadline = time.monotonic() + (0 if self.interrupted else self.options.grace)
         while self.counters["active"] and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
+        server.close()
+        if scrapes is not None:
+            scrapes.close()
         if self.interrupted:  # sessions end now, each with an error to its peers
             await self._drain_handlers(timeout=0)
         await self.shutdown_extra()

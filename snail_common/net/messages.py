@@ -33,7 +33,11 @@ garbler -> mapowner          per invocation ``map_invocation`` {sid, frame, coun
 mapowner -> evaluator        ``owner_labels`` chunks: the labels of the map owner's wires
                              (the last ``count`` input wires of the circuit)
 ``garble_request`` carries the ``frame`` handle and the ``map_owner`` address when the
-circuit takes map-owner inputs.
+circuit takes map-owner inputs, and names the evaluator replica the client talks to
+(``evaluator``: its address as the client reached it, ``evaluator_id``: the ``instance``
+of its ``capabilities``); the garbler streams to that replica if its operator's
+``--evaluator`` names reach it, else refuses ``forbidden`` (snail_common.net.replicas).
+``map_invocation`` names the same replica to the map owner.
 
 The garbler never receives input labels and the evaluator never receives a seed or delta:
 there is no message carrying them to the wrong role. The map owner never receives a 2D
@@ -154,12 +158,13 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "hello": ({"role": one_of(ROLES), "software": text(64), "max_frame": count}, {}),
     "capabilities": ({"role": one_of(ROLES), "software": text(64), "max_frame": count,
                       "families": text_list, "max_sessions": count},
-                     {"max_and_gates": count}),
+                     {"max_and_gates": count, "instance": text(64)}),
     "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash},
                       {"scheme": scheme}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
                         "delta": key16, "key": key16},
-                       {"scheme": scheme, "frame": key16, "map_owner": text(MAX_ADDRESS)}),
+                       {"scheme": scheme, "frame": key16, "map_owner": text(MAX_ADDRESS),
+                        "evaluator": text(MAX_ADDRESS), "evaluator_id": text(64)}),
     "input_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
     "tables": ({"sid": sid, "data": blob()}, {}),
     "done": ({"sid": sid}, {}),
@@ -183,7 +188,7 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "sel_table": ({"frame": key16, "start": count, "key": key16, "offset": count,
                    "total": count, "table": chunk}, {}),
     "map_invocation": ({"sid": sid, "frame": key16, "count": count,
-                        "evaluator": text(MAX_ADDRESS)}, {}),
+                        "evaluator": text(MAX_ADDRESS)}, {"evaluator_id": text(64)}),
     "owner_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
 }
 

@@ -15,7 +15,8 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from .errors import BUSY  # a session refused for lack of a slot: not counted as failed
+# sessions refused for lack of a slot, or by a draining daemon: not counted as failed
+from .errors import BUSY, DRAINING
 
 OK = "ok"
 GAUGES = ("active", "streaming", "queued_bytes")  # kept up to date by the daemon
@@ -47,8 +48,10 @@ class Metrics:
     def health(self) -> dict[str, int]:
         """The ``sessions`` field of the health message."""
         done, busy = self.sessions[OK], self.sessions[BUSY]
+        draining = self.sessions[DRAINING]
         return {**self.gauges, "connections": self.connections(), "done": done,
-                "failed": sum(self.sessions.values()) - done - busy, "busy": busy,
+                "failed": sum(self.sessions.values()) - done - busy - draining,
+                "busy": busy, "draining": draining,
                 "rejected": sum(self.refused.values()), "rss_bytes": rss_bytes()}
 
     def prometheus(self) -> str:

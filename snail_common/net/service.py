@@ -34,6 +34,7 @@ from .conn import SOFTWARE, Connection
 from .errors import (
     BUSY,
     CIRCUIT_MISMATCH,
+    DRAINING,
     TIMEOUT,
     TOO_LARGE,
     UNEXPECTED,
@@ -80,7 +81,8 @@ class Daemon(Listener):
         return messages.make("capabilities", role=self.role, software=SOFTWARE,
                              max_frame=MAX_FRAME, families=list(registry.families()),
                              max_sessions=self.options.max_sessions,
-                             max_and_gates=self.options.max_and_gates)
+                             max_and_gates=self.options.max_and_gates,
+                             instance=self.instance)
 
     def use_engine(self, status: dict[str, str]) -> None:
         """Record which garbling engine serves (gc/engine.py's ``engine_status``), for
@@ -157,10 +159,12 @@ class Daemon(Listener):
         raise ProtocolError(UNEXPECTED, refusal.format(kind))
 
     def admit(self, peer: str = "") -> None:
-        """Count a new session (of client ``peer``, if known), or refuse it as busy when
-        the daemon is full or stopping, or the peer holds its quota."""
+        """Count a new session (of client ``peer``, if known), or refuse it: as draining
+        when the daemon is stopping (SIGTERM: the client retries on another replica), as
+        busy when it is full or the peer holds its quota."""
         if self.stopping.is_set():
-            raise ProtocolError(BUSY, f"the {self.role} is shutting down")
+            raise ProtocolError(DRAINING, f"the {self.role} is draining (stopping): it "
+                                          f"finishes its sessions and takes no new one")
         if self.counters["active"] >= self.options.max_sessions:
             raise ProtocolError(BUSY, f"the {self.role} runs its maximum of "
                                       f"{self.options.max_sessions} sessions")
@@ -196,15 +200,22 @@ class Daemon(Listener):
 
     def log_session(self, *, peer: str, sid: bytes, circuit: str, n_and: int,
                     bytes_in: int, bytes_out: int, seconds: float, outcome: str,
-                    reason: str = "") -> None:
-        """The one JSON line per session, and the counters it adds to."""
+                    reason: str = "", scheme: str = "",
+                    timeline: dict[str, float] | None = None) -> None:
+        """The one JSON line per session, and the counters it adds to. ``timeline``:
+        when this daemon saw the session's events (epoch seconds: comparable across
+        hosts with synchronized clocks), e.g. the tables' first and last byte."""
         self.metrics.session_ended(outcome, n_and, bytes_in, bytes_out, seconds)
         fields: dict[str, Any] = {"peer": peer, "sid": sid, "circuit": circuit,
                                   "and": n_and, "bytes_in": bytes_in,
                                   "bytes_out": bytes_out, "seconds": round(seconds, 4),
                                   "outcome": outcome}
+        if scheme:
+            fields["scheme"] = scheme
         if reason:
             fields["reason"] = reason
+        if timeline:
+            fields["timeline"] = {k: round(v, 6) for k, v in timeline.items()}
         event(self.log, "session", logging.INFO if outcome == OK else logging.WARNING,
               **fields)
 

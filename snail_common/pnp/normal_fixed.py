@@ -53,10 +53,23 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   costs of the same weights; the result's reprojection RMS is computed from the final
   pose in float64, not from it;
 - fixed point: the Jacobian, J^T W J and J^T W r, at about 13 significant bits, the
-  precision normal.py's narrow floats already had. The Jacobian is sqrt(w) J: sqrt(w)
-  multiplies c, a and b (6 products per point) and the rest is built from those (6
-  more), 12 products instead of 5 for J and 10 for W J, all exact floors (truncated
-  products there lost GN scenes), J^T W J = (sqrt(w) J)^T (sqrt(w) J) and J^T W r =
+  precision normal.py's narrow floats already had. The Jacobian is that of the step
+  (v', w) rotating about the map's origin, R' = exp(w) R, t' = t + v' (types.py's step
+  rotates about the camera: v = v' - [t]x w to first order; loc/backends.py turns the
+  sums and steps into it in float64). About the camera, the rotation columns (-a b,
+  1 + a^2, -b; ...) of a small tag far away are nearly those of a translation: J^T W J's
+  scaled eigenvalues went down to 3e-5 on one-tag frames, its fixed-point errors of
+  1e-3 made it indefinite, and GN lost a fifth of such frames (the in-circuit solve
+  half, its LM crawled to the iteration cap on a quarter); each quantity swapped for
+  float64 in the mirror showed it: only J^T W J exact (or J^T J formed without the
+  products' floors) saved them. About the map's origin the rotation columns are c times
+  R X (u: -a c Y_y, c (Y_z + a Y_x), -c Y_y; v: -c (Y_z + b Y_y), b c Y_x, c Y_x, with
+  Y = R X, the exact sum camera_points_rotated keeps, at W_Y bits of the map's binade),
+  apart from the translation's, and the smallest scaled eigenvalue of the same frames
+  is 1e-2. sqrt(w) multiplies c (2 products per point), and sqrt(w) c multiplies a, b
+  (2) and Y (6), a and b those (4): 14 products, the last 10 truncated (fixed.mul_cut_sm,
+  GUARD bits; exact ones cost 0.9 k AND per point more and converged no better), the
+  translation columns' exact floors. J^T W J = (sqrt(w) J)^T (sqrt(w) J) and J^T W r =
   (sqrt(w) J)^T (sqrt(w) r) (J^T W r's residuals: W_R = 15 bits of
   the largest, truncated from the cost's; W_RS = 13 when the client solves, which shrinks
   each by less than 2^-12 of the largest: a shift of the converged pose far below its
@@ -73,10 +86,20 @@ Same quantities as normal.py, computed differently where precision allows (fixed
   cheaper. J^T W J only sets how fast the iteration converges, J^T W r where it converges:
   at 10 bits (against 13) 2 x 1,000 random scenes (seeds 1 and 2, LM and GN) were as
   accurate as before and needed as many iterations; shift 4 lost a GN scene and left one
-  unconverged (seed 2), shift 5 lost two (seed 1). The in-circuit solve keeps all 13 bits:
-  with the shift, its LM (x10 / /10 damping) ended at the 20-iteration cap on 2 of 1,000
-  scenes (seed 1) where it converges. The products of J^T W J and J^T W r are truncated
-  (fixed.mul_cut, GUARD and H_GUARD), each row of J^T W J's with one shared multiplicand;
+  unconverged (seed 2), shift 5 lost two (seed 1); with the rotation about the map's
+  origin and its columns' own block exponents, shift 4 (H_SHIFT) loses none of 300
+  one-tag, 400 random and 300 plane-tags scenes (shift 5 lost a flat valley's n = 4
+  scene). The in-circuit solve shifts by H_SHIFT_SOLVE = 2: with 4 its GN lost 3 of 300
+  one-tag scenes and 1 of 300 plane-tags ones, with 2 none (1.2 k AND per point less than
+  0; about the camera it had kept all 13 bits, its LM at the 20-iteration cap on 2 of
+  1,000 random scenes with a shift). The products of J^T W J and J^T W r are truncated
+  (fixed.mul_cut, GUARD and H_GUARD), each row of J^T W J's with one shared multiplicand.
+  Each square on J^T W J's diagonal is floored at its unit, half a unit lost on average:
+  nothing against a large column, but a weak one (a tag seen head-on: its tilt barely
+  moves the corners, a column of 5-8 bits) lost up to a tenth of its diagonal and GN
+  crawled to the cap (n = 4 random scenes); the client adds the half units back
+  (``decode``), the in-circuit solve adds them rounded (``with_floors``: the live points
+  counted from ``wfix``, a few hundred AND in all);
 - the client passes the square roots of its weights normalized to a largest weight of 1
   as 16-bit integers (``wfix``, 2^F_W for 1): the cost takes all 16 bits, the Jacobian
   the top W_WS = 10 (a free truncation; sqrt(w) r is the cost's, shortened). The float32
@@ -85,7 +108,8 @@ Same quantities as normal.py, computed differently where precision allows (fixed
 
 Outputs are integers: ``hess`` (21, packed as normal.UPPER) at scale
 2^(s_i + s_k + DROP), ``grad`` (6) at 2^(s_i + sr + DROP), where s is the column scale
-(translation columns: the inverse depths' block scale; rotation columns: 2^-F_A) and sr
+(translation columns: the inverse depths' block scale sc; rotation columns: sc times
+the map's block unit and 2^Y_DROP) and sr
 the residuals' block scale (``scales`` computes them; ``decode``), and ``cost`` at
 2^(D_COST + 2 src), src the residuals' block scale at W_RC bits; all three are of the
 normalized weights (times the largest weight in the client's units).
@@ -103,6 +127,8 @@ F_A = 13  # fraction bits of the projections a = x/z, b = y/z
 W_A = 14  # their magnitude bits: |a| < 2
 EMAX_A = W_A + SCALE_BIAS - F_A  # the float exponent at the top of that scale
 W_C = 15  # inverse depths, relative to the largest one
+W_Y = 13  # R X in the rotation columns, relative to the map's largest binade
+Y_DROP = 2  # c R X drops these bits more, so it fits W_C - 1 bits (|R X| < 2^(1/2 + 1))
 W_R = 15  # residuals in J^T W r, relative to the largest one, in the in-circuit solve
 W_RS = 13  # when the client solves (2 x 1,000 scenes per algorithm as with 15 bits, as
 # many iterations; 11 bits took more and lost a GN scene; the in-circuit solve's LM and GN
@@ -115,7 +141,8 @@ W_WS = 10  # their top bits scale the sums (1,000 random scenes per algorithm co
 D_COST = 12  # bits dropped by w r times r: a per-point cost is within 2^-24 of the largest
 DROP = F_A  # bits dropped by every pair product of J^T W J and J^T W r
 HESS_BITS = 31  # to_float's integers are at most 2^31 in magnitude (float_system)
-H_SHIFT = 3  # J^T W J's Jacobian magnitudes are this much shorter when the client solves
+H_SHIFT_SOLVE = 2  # the same for the in-circuit solve (module doc)
+H_SHIFT = 4  # J^T W J's Jacobian magnitudes are this much shorter when the client solves
 F_ROT = 24  # fraction bits of the rotation entries: all of float32's for |r| in [1/2, 1]
 W_MAP = 24  # map coordinates, relative to the largest one's binade (module doc)
 W_XC = W_MAP + 1  # camera points' bits at that binade: R X's products keep one bit more
@@ -128,11 +155,6 @@ T_BITS = 12  # the translation's headroom over that binade (module doc: camera p
 _U_COLS = [0, 2, 3, 4, 5]
 _V_COLS = [1, 2, 3, 4, 5]
 _PAIRS = [(i, k) for i in range(5) for k in range(i, 5)]
-# Pair (1, 4) of either row, the (2, 5) entry, is a b c times the weight: minus pair (0, 2)
-# of ju and minus pair (0, 3) of jv, so each row computes 14 products (normal.py).
-_COMPUTED = [pair for pair in _PAIRS if pair != (1, 4)]
-_MIRRORED = (_COMPUTED.index((0, 2)), _COMPUTED.index((0, 3)))
-_ORDER = [_COMPUTED.index(p) if p != (1, 4) else len(_COMPUTED) for p in _PAIRS]
 
 
 def _sources(cols: list[int], entries: list[tuple[int, ...]]) -> list[int | None]:
@@ -174,6 +196,11 @@ def camera_points_fixed(R: F, t: F, world: F) -> F:
 
 
 def camera_points_block(R: F, t: F, pts: SM, ew) -> F:
+    """camera_points_rotated's camera points."""
+    return camera_points_rotated(R, t, pts, ew)[0]
+
+
+def camera_points_rotated(R: F, t: F, pts: SM, ew) -> tuple[F, TC]:
     """X_c = R X + t (n, 3) as float32, computed in fixed point: the map as block floating
     point (its largest exponent ew, W_MAP bits), R at the public scale 2^-F_ROT, t at the
     map's scale with T_BITS more integer bits (saturating beyond), exact integer sums,
@@ -186,7 +213,9 @@ def camera_points_block(R: F, t: F, pts: SM, ew) -> F:
     floor and its partial products below 2^-X_GUARD of its unit: 2 x 13 terms /
     2^(X_GUARD + 1) < 4 units), t by less than v / 2: before the final rounding a
     coordinate is within 12.5 v, after it within 12.5 v + 2^-24 |X_c|
-    (tests/test_loc_fixed.py). float32 is within a few 2^-24 (M + |t|).
+    (tests/test_loc_fixed.py). float32 is within a few 2^-24 (M + |t|). Also R X, the
+    exact sum before t is added, in units of 2^(ew - W_XC - SCALE_BIAS): the rotated map
+    the Jacobian's rotation columns take (normal_equations_fixed).
     """
     fx = fix_backend(R)
     rot = fx.from_float(R, SCALE_BIAS + 1, F_ROT + 1)  # magnitudes of 1.0 are 2^F_ROT
@@ -195,7 +224,7 @@ def camera_points_block(R: F, t: F, pts: SM, ew) -> F:
     prods = fx.mul_cut(rot[None], pts[:, None, :], drop, drop - X_GUARD, W_XC + 1)  # (n, 3, 3)
     rx = fx.sum_tc(fx.stack_tc([fx.index_tc(prods, (slice(None), slice(None), j))
                                 for j in range(3)], 0))
-    return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_XC)
+    return fx.to_float_scaled(fx.add_tc(rx, fx.index_tc(trans, (None,))), ew, W_XC), rx
 
 
 def normal_equations_fixed(R: F, t: F, image: F, block: tuple[SM, object], weights: F,
@@ -206,7 +235,7 @@ def normal_equations_fixed(R: F, t: F, image: F, block: tuple[SM, object], weigh
     words), which the cost uses too: ``weights`` is not read. J^T W J takes the
     Jacobian's magnitudes ``h_shift`` bits shorter and J^T W r the residuals at
     ``r_bits`` (H_SHIFT and W_RS where the client solves)."""
-    xc = camera_points_block(R, t, *block)
+    xc, rx = camera_points_rotated(R, t, *block)
     proj = xc[:, 0:2] / xc[:, 2:3]  # a = x/z, b = y/z correctly rounded
     err = proj - image
     fx = fix_backend(R)
@@ -222,25 +251,29 @@ def normal_equations_fixed(R: F, t: F, image: F, block: tuple[SM, object], weigh
     cost = fx.sum_tc(fx.concat_tc([fx.index_tc(cost_pt, (slice(None), k)) for k in range(2)], 0))
     sw = fx.shr(sw16, W_W - W_WS)                                 # (n, 2), 2^(W_WS - 1) is 1
     cw = fx.mul(c[:, None], sw, W_WS - 1, W_C)                    # sqrt(w) c per row
-    aw = fx.mul(a[:, None], sw, W_WS - 1, W_A)
-    bw = fx.mul(b[:, None], sw, W_WS - 1, W_A)
     ab_pair = fx.stack([a, b], 1)
     cwab = fx.mul(cw, ab_pair, F_A, W_C + 1)                      # sqrt(w) (a c, b c)
-    awb = fx.mul(aw, b[:, None], F_A, W_A + 1)                    # sqrt(w) a b
-    sq = fx.stack([aw[:, 0], bw[:, 1]], 1)
-    one = fx.add_shl(fx.mul(sq, ab_pair, F_A, W_A + 1), sw, F_A - W_WS + 1, W_A + 2)
-    ju = fx.stack([cw[:, 0], fx.neg(cwab[:, 0]), fx.neg(awb[:, 0]), one[:, 0], fx.neg(bw[:, 0])], 1)
-    jv = fx.stack([cw[:, 1], fx.neg(cwab[:, 1]), fx.neg(one[:, 1]), awb[:, 1], aw[:, 1]], 1)
+    y = fx.sm_from_tc(rx, W_XC - W_Y, W_Y + 1)                    # R X (n, 3): module doc
+    cwy = fx.mul_cut_sm(cw[:, :, None], y[:, None, :], W_Y + Y_DROP, W_Y + Y_DROP - GUARD,
+                        W_C - 1)                                  # sqrt(w) c R X
+    abcy = fx.mul_cut_sm(ab_pair[:, :, None], cwy[:, :, 0:2], F_A, F_A - GUARD,
+                         W_C)                                     # u: a c Y, v: b c Y (x, y)
+    mixed = fx.add_tc(fx.twos(cwy[:, :, 2]), fx.twos(fx.stack([abcy[:, 0, 0], abcy[:, 1, 1]], 1)))
+    mixed = fx.sm_from_tc(mixed, 0, W_C + 1)                      # u: c (z + a x), v: c (z + b y)
+    ju = fx.stack([cw[:, 0], fx.neg(cwab[:, 0]), fx.neg(abcy[:, 0, 1]), mixed[:, 0],
+                   fx.neg(cwy[:, 0, 1])], 1)
+    jv = fx.stack([cw[:, 1], fx.neg(cwab[:, 1]), fx.neg(mixed[:, 1]), abcy[:, 1, 0],
+                   cwy[:, 1, 0]], 1)
     jac = fx.stack([ju, jv], 1)                                   # sqrt(w) J (n, 2, 5)
+    rot, el = fx.normalize_columns(jac[:, :, 2:5])                # each its own block
+    jac = fx.stack([jac[:, :, 0], jac[:, :, 1], rot[:, :, 0], rot[:, :, 1], rot[:, :, 2]], 2)
     jh = fx.shr(jac, h_shift)
     pair_w = 2 * jac.w - DROP
     drop_h = DROP - 2 * h_shift
-    computed = fx.concat_tc([fx.mul_cut(jh[:, :, i:i + 1], jh[:, :, i:4 if i == 1 else 5],
-                                        drop_h, drop_h - H_GUARD, pair_w)
-                             for i in range(5)], 2)                    # (n, 2, 14)
-    mirrored = fx.neg_tc(fx.stack_tc([fx.index_tc(computed, (slice(None), row, [_MIRRORED[row]]))
-                                      for row in range(2)], 1))      # (n, 2, 1)
-    hpair = fx.index_tc(fx.concat_tc([computed, mirrored], 2), (slice(None), slice(None), _ORDER))
+    # every pair of columns of each row: with the rotation columns each at its own scale,
+    # pair (1, 4) is no longer minus pair (0, 2) of ju and (0, 3) of jv in units
+    hpair = fx.concat_tc([fx.mul_cut(jh[:, :, i:i + 1], jh[:, :, i:5], drop_h,
+                                     drop_h - H_GUARD, pair_w) for i in range(5)], 2)
     entries = [e for e in UPPER if e != (0, 1)]
     hterms = _gather(fx, hpair, n, (_sources(_U_COLS, entries), _sources(_V_COLS, entries)))
     hess = fx.sum_tc(hterms)
@@ -250,7 +283,7 @@ def normal_equations_fixed(R: F, t: F, image: F, block: tuple[SM, object], weigh
     gterms = _gather(fx, gpart, n, (_sources(_U_COLS, gentries), _sources(_V_COLS, gentries)))
     grad = fx.sum_tc(gterms)
     hess = fx.insert_zero(hess, UPPER.index((0, 1)))               # ju, jv never both
-    return hess, grad, cost, ec, er
+    return hess, grad, cost, ec, er, el
 
 
 def _block_scale(emax, width: int) -> float:
@@ -258,11 +291,19 @@ def _block_scale(emax, width: int) -> float:
     return float(int(emax) - width - SCALE_BIAS)
 
 
-def scales(ec: int, er: int) -> tuple[np.ndarray, float]:
+def scales(ec: int, er: int, emap: int, el: np.ndarray) -> tuple[np.ndarray, float]:
     """log2 of each column's scale (6,) and of the residuals' scale, from the block
-    exponents the circuit returned."""
+    exponents the circuit returned (``el``: the rotation columns' shifts) and the map's
+    (the client's ``emap``)."""
     sc = _block_scale(ec, W_C)
-    return np.array([sc, sc, sc, -F_A, -F_A, -F_A], float), _block_scale(er, W_RS)
+    sw = sc + _rotation_shift(emap) - np.asarray(el, float)
+    return np.array([sc, sc, sc, *sw], float), _block_scale(er, W_RS)
+
+
+def _rotation_shift(emap) -> float:
+    """log2 of the rotation columns' scale over the translation columns' (c R X against c):
+    the unit of R X's W_Y-bit magnitudes, times 2^(W_Y + Y_DROP) that c R X drops."""
+    return float(int(emap) - SCALE_BIAS + Y_DROP)
 
 
 def weights_fixed(weights: np.ndarray) -> np.ndarray:
@@ -280,19 +321,57 @@ def weight_unit(weights: np.ndarray) -> float:
     return float(np.max(weights)) if np.size(weights) else 0.0
 
 
-def decode(weights: np.ndarray, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def decode(weights: np.ndarray, emap: int, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The circuit's integer outputs as float64 J^T W J (packed), J^T W r and the cost, in
-    the units of the float circuit (weights as given, not normalized)."""
-    col, sr = scales(int(out["ec"]), int(out["er"]))
+    the units of the float circuit (weights as given, not normalized), the rotation
+    about the map's origin (module doc: the client turns them into types.py's step)."""
+    col, sr = scales(int(out["ec"]), int(out["er"]), emap, out["el"])
     top = weight_unit(weights)
     rows, cols = np.array(UPPER).T
-    hess = np.asarray(out["hess"], np.float64) * np.exp2(col[rows] + col[cols] + DROP) * top
+    # every square on the diagonal is floored once more at its unit, a loss of half a unit
+    # on average: a weak rotation column's few bits (a tag seen head-on: its tilt barely
+    # moves the corners) lost up to a tenth of its diagonal so, and GN crawled to the cap
+    w = np.asarray(weights) > 0
+    counts = np.array([w[:, 0].sum(), w[:, 1].sum()] + [w.sum()] * 4, np.float64)
+    floors = np.zeros(len(UPPER))
+    floors[[UPPER.index((i, i)) for i in range(6)]] = counts / 2
+    hess = (np.asarray(out["hess"], np.float64) + floors) \
+        * np.exp2(col[rows] + col[cols] + DROP) * top
     grad = np.asarray(out["grad"], np.float64) * np.exp2(col + sr + DROP) * top
     cost = float(out["cost"]) * 2.0 ** (D_COST + 2 * _block_scale(out["er"], W_RC)) * top
     return {"hess": hess, "grad": grad, "cost": np.float64(cost)}
 
 
-def float_system(R: F, hess, grad, cost, ec, er):
+def with_floors(R: F, hess: TC, wfix) -> TC:
+    """J^T W J with the mean loss of its diagonal's floors added back (decode's, for the
+    in-circuit solve): half a unit per square of a point with a non-zero weight, rounded
+    to whole units; the weights' ``wfix`` words say which are."""
+    fx = fix_backend(R)
+    live = fx.nonzero(wfix)                                      # (n, 2)
+    rows = [fx.sum_tc(fx.index_tc(live, (slice(None), k))) for k in range(2)]
+    both = fx.add_tc(rows[0], rows[1])
+    halves = [fx.shr_tc(fx.add_tc(count, fx.constant_tc(1, 2)), 1)
+              for count in (rows[0], rows[1], both)]
+    diag = {UPPER.index((i, i)): halves[min(i, 2)] for i in range(6)}
+    entries = [fx.add_tc(fx.index_tc(hess, p), diag[p]) if p in diag else fx.index_tc(hess, p)
+               for p in range(len(UPPER))]
+    return fx.stack_tc(entries, 0)
+
+
+def rotation_damping(hess: F, t: F, ew, el) -> F:
+    """What rotating about the camera adds to the rotation columns' diagonal, but for the
+    cross terms: sum_j ((t x e_k)_j)^2 H_jj (k = x, y, z; j over the translation columns),
+    in float_system's units (sil.damped). There the rotation column k's scale over the
+    translation columns' is the map's block unit times 2^(Y_DROP - el_k) (``scales``)."""
+    fx = fix_backend(t)
+    ts = fx.scale2(t, fx.exponent_neg(ew, SCALE_BIAS - Y_DROP))
+    diag = hess[[UPPER.index((j, j)) for j in range(3)]]
+    # (t x e_k)^2 for k = x, y, z: (0, tz^2, ty^2), (tz^2, 0, tx^2), (ty^2, tx^2, 0)
+    moved = (ts * ts)[[2, 1, 2, 0, 1, 0]] * diag[[1, 2, 0, 2, 0, 1]]
+    return fx.scale2(moved[0::2] + moved[1::2], fx.exponent_add(None, el, 2))
+
+
+def float_system(R: F, hess, grad, cost, ec, er, el, ew):
     """For a solve inside the circuit: the integer sums as float32 (hess, grad, cost) and
     the function taking the solution y of hess y = -grad to the step in the float
     circuit's units. The solve needs no scales: with H = D H' D and g = s D g' (D the
@@ -309,7 +388,9 @@ def float_system(R: F, hess, grad, cost, ec, er):
     cost_f = fx.scale2(cost_f, fx.exponent_offset(er, None, -W_RC - SCALE_BIAS))
     shift = drop_g - drop_h - HESS_BITS
     to_translation = fx.exponent_offset(er, ec, W_C - W_R + shift)        # sr - sc
-    to_rotation = fx.exponent_offset(er, None, F_A - W_R - SCALE_BIAS + shift)   # sr + F_A
+    to_rotation = fx.exponent_offset(to_translation, ew, SCALE_BIAS - Y_DROP)
+
+    to_rotation = fx.exponent_add(to_rotation, el)
 
     def unscale(y: F) -> F:
         return concat([fx.scale2(y[0:3], to_translation), fx.scale2(y[3:6], to_rotation)])

@@ -18,11 +18,12 @@ from contextlib import AbstractContextManager, nullcontext
 
 from .block_ldlt import SOLVE_FRAC, block_ldlt_solve
 from .fixed import TC, fix_backend
-from .fops import F, stack
+from .fops import F, concat, stack
 from .ldlt import ldlt_solve
 from .normal import UPPER, normal_equations
 from .normal_fixed import (
     H_SHIFT,
+    H_SHIFT_SOLVE,
     W_MAP,
     W_R,
     W_RS,
@@ -30,6 +31,8 @@ from .normal_fixed import (
     float_system,
     map_block,
     normal_equations_fixed,
+    rotation_damping,
+    with_floors,
 )
 from .svd import pinv_step, svd_solve, weighted_system
 
@@ -72,14 +75,15 @@ ITERATION_INPUTS = ("R", "t", "lam")
 # (dtype, bits) of the inputs that are not float32, and the fixed-point circuit's outputs
 INPUT_TYPES = {"wfix": ("uint16", W_W), "wmap": ("uint32", W_MAP + 1), "emap": ("uint8", 8)}
 FIXED_OUTPUT_TYPES = {"hess": "int64", "grad": "int64", "cost": "int64", "ec": "uint8",
-                      "er": "uint8"}
+                      "er": "uint8", "el": "uint8"}
 
 
 OUTPUT_SHAPES = {"step": (6,), "cost": ()}
 # J^T W J packed as normal.UPPER, J^T W r and the cost
 NORMAL_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": ()}
 # the same in fixed point, with the block exponents that scale them (normal_fixed.py)
-FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ec": (), "er": ()}
+FIXED_OUTPUT_SHAPES = {"hess": (21,), "grad": (6,), "cost": (), "ec": (), "er": (),
+                       "el": (3,)}
 
 Solver = Callable[[F, F], F]
 
@@ -94,9 +98,19 @@ def _solver(name: str, arith: str) -> Solver:
     raise ValueError(f"solver must be one of {SOLVERS}, got {name!r}")
 
 
-def damped(hess: F, lam: F) -> F:
-    """Fletcher's damping: every diagonal entry times (1 + lambda)."""
-    scaled = hess[_DIAG] * (lam + 1.0)
+def damped(hess: F, lam: F, moved: F | None = None) -> F:
+    """Fletcher's damping: every diagonal entry times (1 + lambda). With ``moved`` (the
+    fixed-point family, whose step rotates about the map's origin: normal_fixed.py), the
+    rotation entries are damped by their diagonal plus what the rotation moves the camera
+    through the translation columns (normal_fixed.rotation_damping): the diagonal of the
+    sums of a rotation about the camera, but for their cross terms. Damped by their own
+    diagonal, a weak rotation (a tag seen head-on tilting) took steps that LM's x10 / /10
+    could not tame: one of 1,000 one-tag scenes crawled to the cap in float64 too."""
+    diag = hess[_DIAG]
+    if moved is None:
+        scaled = diag * (lam + 1.0)
+    else:
+        scaled = diag + concat([diag[0:3], diag[3:6] + moved]) * lam
     parts = [scaled[_DIAG.index(p)] if p in _DIAG else hess[p] for p in range(len(UPPER))]
     return stack(parts)
 
@@ -108,9 +122,9 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     if solver == CLIENT and arith == "fixed":
-        hess, grad, cost, ec, er = _fixed_sums(inputs, H_SHIFT, W_RS)
+        hess, grad, cost, ec, er, el, _ = _fixed_sums(inputs, H_SHIFT, W_RS)
         return {"hess": hess, "grad": grad, "cost": cost,
-                **{name: TC(e, 8) for name, e in (("ec", ec), ("er", er))}}
+                **{name: TC(e, 8) for name, e in (("ec", ec), ("er", er), ("el", el))}}
     if solver == CLIENT:
         hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
                                             inputs["world"], inputs["weights"])
@@ -120,16 +134,20 @@ def sil_program(inputs: dict[str, F], algorithm: str, solver: str,
                                          inputs["world"], inputs["weights"])
         with cost.be.shallow():
             return {"step": pinv_step(jac, res), "cost": cost}
-    unscale = None
+    unscale = blocks = None
     if arith == "fixed":
-        hess, grad, cost, unscale = float_system(inputs["R"], *_fixed_sums(inputs))
+        hess, *sums = _fixed_sums(inputs, H_SHIFT_SOLVE)
+        hess = with_floors(inputs["R"], hess, inputs["wfix"].v)
+        hess, grad, cost, unscale = float_system(inputs["R"], hess, *sums)
+        blocks = sums[-1], sums[-2]  # the map's exponent, the rotation columns' shifts
     else:
         hess, grad, cost = normal_equations(inputs["R"], inputs["t"], inputs["image"],
                                             inputs["world"], inputs["weights"])
     with hess.be.shallow():  # the solve is one long chain: spend gates to cut depth
         if algorithm == "lm":
             with _damping_precision(hess, arith):
-                hess = damped(hess, inputs["lam"])
+                moved = None if blocks is None else rotation_damping(hess, inputs["t"], *blocks)
+                hess = damped(hess, inputs["lam"], moved)
         step = _solver(solver, arith)(hess, -grad)
     return {"step": step if unscale is None else unscale(step), "cost": cost}
 
@@ -141,12 +159,14 @@ def _damping_precision(hess: F, arith: str) -> AbstractContextManager:
 
 
 def _fixed_sums(inputs: dict[str, F], h_shift: int = 0, r_bits: int = W_R) -> tuple:
-    """normal_equations_fixed on the circuit's named inputs: the map as the client's
-    integers where it solves, else converted from its float32 input."""
+    """normal_equations_fixed on the circuit's named inputs, and the map's block exponent
+    (the rotation columns' scale): the map as the client's integers where it solves, else
+    converted from its float32 input."""
     if "wmap" in inputs:
         fx = fix_backend(inputs["R"])
         block = fx.sign_magnitude(inputs["wmap"].v, W_MAP), inputs["emap"].v
     else:
         block = map_block(inputs["world"])
-    return normal_equations_fixed(inputs["R"], inputs["t"], inputs["image"], block,
-                                  inputs["weights"], inputs["wfix"].v, h_shift, r_bits)
+    return (*normal_equations_fixed(inputs["R"], inputs["t"], inputs["image"], block,
+                                    inputs["weights"], inputs["wfix"].v, h_shift, r_bits),
+            block[1])

@@ -1,0 +1,130 @@
+"""Which side bounds a session, the garbler's CPU or the server link, and the scheme that
+follows (DESIGN.md round 3: half-gates where the garbler's CPU is the limit, three-halves
+where the link is).
+
+The garbler measures both on its own sessions: its garbling rate per scheme (AND gates
+per CPU second of the thread that garbled them) and the table stream's delivery rate and
+round trip (``tcpinfo``: the kernel's sample, used only when the stream, not the garbler,
+was the limit). It reports them in each session's ``stats``; a client asking for
+``auto`` picks the scheme of its next session from them (``pick_scheme``), and every
+client sizes its garble-ahead depth from them (``ahead_depth``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES, table_words
+
+from .tcpinfo import TcpInfo
+
+AUTO = "auto"  # the client's default: the scheme picked per session from the measurements
+CLIENT_SCHEMES = (AUTO, "halfgates", "threehalves")
+EWMA = 0.3  # weight of the newest sample
+# three-halves garbles at about this share of half-gates' rate on one core (README:
+# 3.0 vs 7.9 M AND/s on wide steps); used until the garbler has measured both
+THREE_HALVES_SHARE = 0.38
+
+
+def bytes_per_and(scheme: int) -> float:
+    """Table bytes per AND gate in the stream (three-halves pads its control bits)."""
+    return 8 * table_words(scheme, 1 << 13) / (1 << 13)
+
+
+def _blend(old: float | None, new: float) -> float:
+    return new if old is None else (1 - EWMA) * old + EWMA * new
+
+
+@dataclass
+class LinkRates:
+    """The garbler's running estimates: AND/s per scheme, the link's rate (bytes/s) and
+    round trip (s)."""
+
+    and_per_s: dict[int, float] = field(default_factory=dict)
+    link_rate: float | None = None
+    rtt_s: float | None = None
+
+    def garbled(self, scheme: int, n_and: int, cpu_s: float) -> None:
+        """A session of ``n_and`` AND gates took ``cpu_s`` of garbling threads' CPU."""
+        if n_and > 0 and cpu_s > 0:
+            self.and_per_s[scheme] = _blend(self.and_per_s.get(scheme), n_and / cpu_s)
+
+    def streamed(self, info: TcpInfo | None) -> None:
+        """The table stream's connection after a session: its round trip always, its
+        delivery rate when that sample was not limited by the garbler having nothing
+        to send (an app-limited sample is only a lower bound of the link's rate)."""
+        if info is None:
+            return
+        rtt = info.min_rtt_s if info.min_rtt_s else info.rtt_s
+        if rtt:
+            self.rtt_s = rtt if self.rtt_s is None else min(self.rtt_s, rtt)
+        if info.delivery_rate and not info.app_limited:
+            self.link_rate = _blend(self.link_rate, info.delivery_rate)
+        elif info.delivery_rate and (self.link_rate is None
+                                     or info.delivery_rate > self.link_rate):
+            self.link_rate = info.delivery_rate  # app-limited, yet faster than believed
+
+    def rate_of(self, scheme: int) -> float | None:
+        """AND/s garbling ``scheme``: measured, or derived from the other scheme's."""
+        if scheme in self.and_per_s:
+            return self.and_per_s[scheme]
+        if scheme == SCHEME_THREE_HALVES and SCHEME_HALF_GATES in self.and_per_s:
+            return self.and_per_s[SCHEME_HALF_GATES] * THREE_HALVES_SHARE
+        if scheme == SCHEME_HALF_GATES and SCHEME_THREE_HALVES in self.and_per_s:
+            return self.and_per_s[SCHEME_THREE_HALVES] / THREE_HALVES_SHARE
+        return None
+
+    def report(self) -> dict[str, float]:
+        """The estimates as ``stats`` timing fields (those known)."""
+        out: dict[str, float] = {}
+        for scheme, name in ((SCHEME_HALF_GATES, "halfgates"),
+                             (SCHEME_THREE_HALVES, "threehalves")):
+            rate = self.rate_of(scheme)
+            if rate:
+                out[f"and_per_s_{name}"] = round(rate)
+        if self.link_rate:
+            out["link_mbit"] = round(self.link_rate * 8 / 1e6, 1)
+        if self.rtt_s:
+            out["link_rtt_ms"] = round(self.rtt_s * 1000, 3)
+        return out
+
+
+def seconds_per_and(scheme: int, and_per_s: float, link_bytes_per_s: float) -> float:
+    """A session's pace per AND gate: the slower of garbling and sending its tables."""
+    return max(1 / and_per_s, bytes_per_and(scheme) / link_bytes_per_s)
+
+
+def pick_scheme(report: dict[str, float] | None) -> str:
+    """The scheme a session should use given the garbler's last ``report`` (its stats
+    timing fields, as ``LinkRates.report`` writes them): three-halves when its fewer
+    bytes make the session faster on this link than half-gates' faster garbling does,
+    half-gates otherwise and while nothing is measured."""
+    if not report or "link_mbit" not in report or "and_per_s_halfgates" not in report:
+        return "halfgates"
+    link = report["link_mbit"] * 1e6 / 8
+    half = seconds_per_and(SCHEME_HALF_GATES, report["and_per_s_halfgates"], link)
+    three_rate = report.get("and_per_s_threehalves",
+                            report["and_per_s_halfgates"] * THREE_HALVES_SHARE)
+    three = seconds_per_and(SCHEME_THREE_HALVES, three_rate, link)
+    return "threehalves" if three < half else "halfgates"
+
+
+MAX_AHEAD = 3  # sessions garbled ahead at most: each holds a stream and evaluator memory
+
+
+def ahead_depth(report: dict[str, float], n_and: int, scheme: str, table_bytes: int,
+                interval_s: float, most: int = MAX_AHEAD) -> int:
+    """Sessions to keep garbled ahead so that the next one's tables are all at the
+    evaluator when it is invoked: a session asked for now is needed ``depth``
+    invocations (of ``interval_s`` each) later, and takes its garbling at the
+    garbler's own rate, its ``table_bytes`` over the link's rate and the link's one-way
+    delay to get there (the bandwidth-delay product in time). 1 while nothing is
+    measured; at most ``most``."""
+    rate = report.get(f"and_per_s_{scheme}")
+    if not rate or interval_s <= 0:
+        return 1
+    lag = n_and / rate + report.get("link_rtt_ms", 0.0) / 2000
+    if report.get("link_mbit"):
+        lag += table_bytes * 8 / (report["link_mbit"] * 1e6)
+    return max(1, min(most, math.ceil(lag / interval_s)))
