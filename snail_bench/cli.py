@@ -35,6 +35,13 @@ def _emit(report: dict, as_json: bool) -> None:
         click.echo(json.dumps(report))
         return
     for key, value in next(iter(report.values())).items():
+        if isinstance(value, dict) and value and all(isinstance(v, dict)
+                                                     for v in value.values()):
+            for name, fields in value.items():  # one line per entry, its plain fields
+                plain = "  ".join(f"{k} {v}" for k, v in fields.items()
+                                  if not isinstance(v, dict))
+                click.echo(f"{key + ' ' + name:>24}: {plain}")
+            continue
         if isinstance(value, dict):
             value = "  ".join(f"{k} {v}" for k, v in value.items())
         click.echo(f"{key:>24}: {value}")
@@ -172,15 +179,28 @@ def circuit(algorithm: str, mode: str, points: int, solve: str | None, solver: s
               multiple=True, help="Garbling scheme to measure; repeat for several (default: "
                                   "both, half-gates first). The first one's numbers are the "
                                   "top-level fields; each scheme's are under 'schemes'.")
+@click.option("--engine", "engine_names", type=click.Choice(["native", "numpy"]),
+              multiple=True, help="Engine to measure; repeat for several (default: the "
+                                  "native kernel where it can run, and numpy, in the same "
+                                  "run). Each engine's numbers are under 'engines'; the "
+                                  "top-level fields are the engine the daemons would serve "
+                                  "with ($SNAIL_ENGINE).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def engine(schemes: tuple[str, ...], as_json: bool) -> None:
+def engine(schemes: tuple[str, ...], engine_names: tuple[str, ...], as_json: bool) -> None:
     """Garbling engine: AES rate, garble/evaluate AND gates per second on wide steps,
     per-step overhead on narrow ones, a two-process loopback rate, and the garbler ->
     evaluator bytes per AND gate, per scheme (with both: bytes_ratio, three-halves over
-    half-gates)."""
+    half-gates) and per engine (the native kernel and numpy)."""
+    from snail_common.gc.engine import NativeUnavailable
+
     from .engine import SCHEMES, engine_report
 
-    _emit(engine_report(schemes=tuple(dict.fromkeys(schemes)) or SCHEMES), as_json)
+    try:
+        report = engine_report(schemes=tuple(dict.fromkeys(schemes)) or tuple(SCHEMES),
+                               engine_names=engine_names or None)
+    except NativeUnavailable as exc:
+        raise click.BadParameter(f"native: {exc}", param_hint="--engine") from None
+    _emit(report, as_json)
 
 
 @main.command()

@@ -14,6 +14,10 @@ Rates are the best of a few runs (the first pays for page faults and cold caches
 Each scheme asked for is measured on the same circuits; the first one's numbers are the
 report's top-level fields (with its ``scheme``), every scheme's are under ``schemes``, and
 with both, ``bytes_ratio`` is three-halves' stream over half-gates'.
+
+Each engine asked for (default: the native kernel where it can run, and numpy) is measured
+the same way in the same run, its report under ``engines`` with its ``engine``; the
+top-level fields are those of the engine the daemons would serve with (``serving``).
 """
 
 from __future__ import annotations
@@ -40,8 +44,10 @@ from snail_common.gc import (
     fresh_delta,
     fresh_seed,
 )
+from snail_common.gc import engine as engines
 from snail_common.gc.aes import AesBatch, byte_view
-from snail_common.gc.stream import DEFAULT_SCHEME, HEADER, SCHEMES
+from snail_common.gc.native.run import program_for
+from snail_common.gc.stream import BLOCK_GATES, DEFAULT_SCHEME, HEADER, SCHEMES
 
 WIDE_LANES = 1 << 15  # AND steps of 32 Ki and 64 Ki gates
 WIDE_LAYERS = 192  # 6.3 M AND gates
@@ -51,46 +57,76 @@ _LEN = struct.Struct("<I")
 
 
 
+def available_engines() -> tuple[str, ...]:
+    """The engines that can run here, the native kernel first."""
+    try:
+        engines.resolve("native")
+    except engines.NativeUnavailable:
+        return ("numpy",)
+    return engines.ENGINES
+
+
 def engine_report(wide_layers: int = WIDE_LAYERS, deep_layers: int = DEEP_LAYERS,
-                  schemes: tuple[str, ...] = tuple(SCHEMES)) -> dict:
+                  schemes: tuple[str, ...] = tuple(SCHEMES),
+                  engine_names: tuple[str, ...] | None = None) -> dict:
     """Measure AES, garble, evaluate, per-step overhead, end-to-end rates and stream bytes
-    per AND of each scheme (one run); ``schemes`` is any iterable of names (SCHEMES
-    itself: every scheme)."""
+    per AND of each scheme on each engine (one run); ``schemes`` is any iterable of names
+    (SCHEMES itself: every scheme). ValueError for an unknown scheme or engine;
+    NativeUnavailable when the native kernel is asked for and cannot run."""
     schemes = tuple(schemes)
     if not schemes or any(s not in SCHEMES for s in schemes):
         raise ValueError(f"schemes must be some of {', '.join(SCHEMES)}, got {schemes}")
+    names = tuple(dict.fromkeys(engine_names or available_engines()))
+    if any(e not in engines.ENGINES for e in names):
+        raise ValueError(f"engines must be some of {', '.join(engines.ENGINES)}, got {names}")
+    for name in names:
+        engines.resolve(name)  # raises where it cannot run
     load = os.getloadavg()[0]  # other work on the machine: context for every rate below
     wide = schedule_circuit(_layered_circuit(WIDE_LANES, wide_layers))
     deep = schedule_circuit(_layered_circuit(DEEP_LANES, deep_layers))
     t0 = time.perf_counter()
     plan_for(wide)
     plan_s = time.perf_counter() - t0
-    per_scheme = {s: _scheme_report(wide, deep, s) for s in schemes}
-    report = {"scheme": schemes[0], "aes_blocks_per_s": round(_aes_rate()),
-              **per_scheme[schemes[0]]}
+    t0 = time.perf_counter()
+    program_for(wide, BLOCK_GATES)
+    program_s = time.perf_counter() - t0
+    per_engine = {}
+    for name in names:
+        per_scheme = {s: _scheme_report(wide, deep, s, name) for s in schemes}
+        entry = {"engine": name, "scheme": schemes[0], **per_scheme[schemes[0]],
+                 "schemes": per_scheme}
+        if len(per_scheme) == len(SCHEMES):
+            entry["bytes_ratio"] = round(per_scheme["threehalves"]["stream_bytes"]
+                                         / per_scheme[DEFAULT_SCHEME]["stream_bytes"], 4)
+        per_engine[name] = entry
+    serving = engines.engine_status()
+    top = serving["engine"] if serving["engine"] in per_engine else names[0]
+    report = {**per_engine[top], "serving": serving["engine"],
+              "aes_blocks_per_s": round(_aes_rate())}
+    if "reason" in serving:
+        report["native_unavailable"] = serving["reason"]
     report.update({
         "plan_s": round(plan_s, 3),
+        "program_s": round(program_s, 3),
         "wide_and": wide.n_and,
         "wide_steps": wide.n_steps,
         "deep_steps": deep.n_steps,
         "cpus": os.cpu_count(),
         "load_avg_1m": round(load, 2),
-        "schemes": per_scheme,
+        "engines": per_engine,
     })
-    if len(per_scheme) == len(SCHEMES):
-        report["bytes_ratio"] = round(per_scheme["threehalves"]["stream_bytes"]
-                                      / per_scheme[DEFAULT_SCHEME]["stream_bytes"], 4)
     return {"engine": report}
 
 
-def _scheme_report(wide: Schedule, deep: Schedule, scheme: str) -> dict:
+def _scheme_report(wide: Schedule, deep: Schedule, scheme: str, engine: str) -> dict:
     """One scheme's rates on the wide and deep circuits, and its stream size."""
     # best of a few runs: the first pays for page faults and cold caches
-    garble_s, evaluate_s = _best(_time_in_process(wide, scheme) for _ in range(2))
-    deep_garble_s, deep_evaluate_s = _best(_time_in_process(deep, scheme) for _ in range(3))
-    e2e_s = min(_time_two_processes(wide, scheme) for _ in range(2))
-    stream = sum(len(f) for f in Garbler(wide, fresh_seed(), fresh_delta(),
-                                         scheme=scheme).frames()) - HEADER.size
+    garble_s, evaluate_s = _best(_time_in_process(wide, scheme, engine) for _ in range(2))
+    deep_garble_s, deep_evaluate_s = _best(_time_in_process(deep, scheme, engine)
+                                           for _ in range(3))
+    e2e_s = min(_time_two_processes(wide, scheme, engine) for _ in range(2))
+    stream = sum(len(f) for f in Garbler(wide, fresh_seed(), fresh_delta(), scheme=scheme,
+                                         engine=engine).frames()) - HEADER.size
     return {
         "garble_and_per_s": round(wide.n_and / garble_s),
         "evaluate_and_per_s": round(wide.n_and / evaluate_s),
@@ -145,7 +181,7 @@ def _cleartext(schedule: Schedule, bits: np.ndarray) -> np.ndarray:
     return unpack_lanes(run_schedule(schedule, pack_lanes(bits[:, None])), 1)[:, 0]
 
 
-def _time_in_process(schedule: Schedule, scheme: str) -> tuple[float, float]:
+def _time_in_process(schedule: Schedule, scheme: str, engine: str) -> tuple[float, float]:
     """(garble seconds, evaluate seconds) in one process; checks the result.
 
     Garbling is timed as a stream (each frame dropped once taken, as a sender does), then
@@ -154,12 +190,12 @@ def _time_in_process(schedule: Schedule, scheme: str) -> tuple[float, float]:
     bits = _inputs(schedule)
     seed, delta, key = fresh_seed(), fresh_delta(), os.urandom(16)
     t0 = time.perf_counter()
-    for _ in Garbler(schedule, seed, delta, key, scheme=scheme).frames():
+    for _ in Garbler(schedule, seed, delta, key, scheme=scheme, engine=engine).frames():
         pass
     garble_s = time.perf_counter() - t0
-    garbler = Garbler(schedule, seed, delta, key, scheme=scheme)
+    garbler = Garbler(schedule, seed, delta, key, scheme=scheme, engine=engine)
     frames = list(garbler.frames())
-    ev = Evaluator(schedule, active_input_labels(seed, delta, bits))
+    ev = Evaluator(schedule, active_input_labels(seed, delta, bits), engine=engine)
     t0 = time.perf_counter()
     for f in frames:
         ev.feed(f)
@@ -201,8 +237,8 @@ def _receiver(conn: socket.socket, frames: queue.Queue) -> None:
     frames.put(None)
 
 
-def _garbler_proc(schedule, seed, delta, port, results, scheme) -> None:
-    garbler = Garbler(schedule, seed, delta, scheme=scheme)
+def _garbler_proc(schedule, seed, delta, port, results, scheme, engine) -> None:
+    garbler = Garbler(schedule, seed, delta, scheme=scheme, engine=engine)
     with socket.create_connection(("127.0.0.1", port)) as conn:
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         frames: queue.Queue = queue.Queue(maxsize=4)
@@ -216,8 +252,8 @@ def _garbler_proc(schedule, seed, delta, port, results, scheme) -> None:
     results.put(("zero", garbler.output_zero_labels))
 
 
-def _evaluator_proc(schedule, labels, listener, results) -> None:
-    ev = Evaluator(schedule, labels)  # before the clock starts, like the garbler
+def _evaluator_proc(schedule, labels, listener, results, engine) -> None:
+    ev = Evaluator(schedule, labels, engine=engine)  # before the clock starts, like the garbler
     conn, _ = listener.accept()
     with conn:
         frames: queue.Queue = queue.Queue(maxsize=8)
@@ -231,7 +267,7 @@ def _evaluator_proc(schedule, labels, listener, results) -> None:
     results.put(("active", out))
 
 
-def _time_two_processes(schedule: Schedule, scheme: str) -> float:
+def _time_two_processes(schedule: Schedule, scheme: str, engine: str) -> float:
     """Seconds from the garbler's first frame to the evaluator's last label, over TCP."""
     ctx = mp.get_context("fork")  # children share the schedule instead of pickling it
     bits = _inputs(schedule, 2)
@@ -239,10 +275,11 @@ def _time_two_processes(schedule: Schedule, scheme: str) -> float:
     labels = active_input_labels(seed, delta, bits)
     listener = socket.create_server(("127.0.0.1", 0))
     results = ctx.Queue()
-    procs = [ctx.Process(target=_evaluator_proc, args=(schedule, labels, listener, results)),
+    procs = [ctx.Process(target=_evaluator_proc,
+                         args=(schedule, labels, listener, results, engine)),
              ctx.Process(target=_garbler_proc,
                          args=(schedule, seed, delta, listener.getsockname()[1], results,
-                               scheme))]
+                               scheme, engine))]
     for p in procs:
         p.start()
     got = dict(results.get(timeout=600) for _ in range(4))

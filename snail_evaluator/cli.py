@@ -8,6 +8,7 @@ from snail_common import families
 from snail_common.net import tls
 from snail_common.net.cli import (
     address,
+    choose_engine,
     configure_caches,
     daemon_options,
     fail,
@@ -38,6 +39,7 @@ def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> Non
         fail(2, f"--tls-dir: {exc}", "snail-evaluator")
     families.register_all()
     configure_caches(kwargs)
+    daemon.use_engine(choose_engine("snail-evaluator"))
     try:
         interrupted = run_daemon(daemon, listen, ctx)
     except OSError as exc:  # cannot bind the listening address

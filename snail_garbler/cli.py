@@ -9,6 +9,7 @@ from snail_common.net import tls
 from snail_common.net.cli import (
     address,
     addresses,
+    choose_engine,
     configure_caches,
     daemon_options,
     fail,
@@ -60,6 +61,7 @@ def main(listen: tuple[str, int], evaluators: tuple[tuple[str, int], ...],
         fail(2, f"--tls-dir: {exc}", "snail-garbler")
     families.register_all()
     configure_caches(kwargs)
+    daemon.use_engine(choose_engine("snail-garbler"))
     try:
         interrupted = run_daemon(daemon, listen, server_ctx)
     except OSError as exc:  # cannot bind the listening address

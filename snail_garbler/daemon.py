@@ -75,20 +75,24 @@ INLINE_INPUTS = 1 << 14
 # even small or narrow circuits; the engine cost model is per AND gate plus per step.
 # Beyond MAX_FRAMES frames a run overlaps no better, while every frame costs both daemons
 # fixed work (thread hand-offs, a TLS write and read, decoding): n = 256 sent ~570 frames
-# of ~0.4 MiB, now ~230 of 1 MiB.
+# of ~0.4 MiB, now ~230 of 1 MiB. The native kernel garbles n = 6 in a few ms: 36 frames
+# sized for numpy's pace made the hand-offs the garbler's largest cost (py-spy --gil),
+# so its plan has ~6 frames of 1 MiB.
 FRAME_SECONDS = 2e-3
 MAX_FRAMES = 64
-AND_SECONDS = 120e-9
-STEP_SECONDS = 15e-6
+# seconds of garbling per AND gate and per step, by engine (this machine, loaded)
+ENGINE_COSTS = {"numpy": (120e-9, 15e-6), "native": (20e-9, 0.3e-6)}
 MIN_FRAME, MAX_FRAME_BYTES = 4 << 10, 1 << 20
 
 
-def frame_plan(schedule: Schedule, scheme: int = SCHEME_HALF_GATES) -> tuple[int, int]:
-    """(block_gates, frame_bytes) for garbling ``schedule``: about FRAME_SECONDS of work
-    per frame but at most MAX_FRAMES frames, between 4 KiB and 1 MiB; blocks of at most
-    8192 gates fill a frame."""
+def frame_plan(schedule: Schedule, scheme: int = SCHEME_HALF_GATES,
+               engine: str = "numpy") -> tuple[int, int]:
+    """(block_gates, frame_bytes) for garbling ``schedule`` on ``engine``: about
+    FRAME_SECONDS of work per frame but at most MAX_FRAMES frames, between 4 KiB and 1 MiB;
+    blocks of at most 8192 gates fill a frame."""
     per_and = 8 * table_words(scheme, 1 << 13) / (1 << 13)  # bytes per AND in the stream
-    seconds = schedule.n_and * AND_SECONDS + schedule.n_steps * STEP_SECONDS
+    and_s, step_s = ENGINE_COSTS[engine]
+    seconds = schedule.n_and * and_s + schedule.n_steps * step_s
     frames = min(MAX_FRAMES, max(1.0, seconds / FRAME_SECONDS))
     size = int(min(MAX_FRAME_BYTES, max(MIN_FRAME, per_and * schedule.n_and / frames)))
     block = 1 << max(7, min(13, int(size // per_and).bit_length() - 1))
@@ -173,7 +177,8 @@ class GarblerDaemon(Daemon):
                                                 evaluator.info.get("instance")))
                 scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
                 record["scheme"] = req.get("scheme", DEFAULT_SCHEME)
-                block, frame = frame_plan(schedule, scheme)
+                block, frame = frame_plan(schedule, scheme,
+                                          self.engine.get("engine", "numpy"))
                 garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
                                                  req["delta"], req["key"], block, frame)
                            if scheme == SCHEME_HALF_GATES else None)  # lanes: half-gates

@@ -18,6 +18,11 @@ families.register_all()  # every circuit id the tests name
 if not os.environ.get("SNAIL_CACHE_DIR"):
     os.environ["SNAIL_CACHE_DIR"] = tempfile.mkdtemp(prefix="snail-test-cache-")
     atexit.register(shutil.rmtree, os.environ["SNAIL_CACHE_DIR"], ignore_errors=True)
+# The native kernel is compiled once per run into a folder every daemon of the run shares
+# (each fixture's fresh circuit cache would compile it again).
+if not os.environ.get("SNAIL_KERNEL_DIR"):
+    os.environ["SNAIL_KERNEL_DIR"] = os.path.join(os.environ["SNAIL_CACHE_DIR"],
+                                                  "native-kernel")
 
 # CI decides whether work lands, so there the randomized tests draw the same examples on
 # every run (a rare unlucky draw must not block a merge); developers' runs stay random and

@@ -3,7 +3,8 @@ prints the documented shape; a small configuration keeps it a smoke test."""
 
 import pytest
 
-from snail_bench.engine import engine_report
+from snail_bench.engine import available_engines, engine_report
+from snail_common.gc import engine as engines
 
 RATES = ("aes_blocks_per_s", "garble_and_per_s", "evaluate_and_per_s", "end_to_end_and_per_s")
 
@@ -25,6 +26,25 @@ def test_engine_report_shape_and_sanity():
     assert three["bytes_per_and"] == pytest.approx(24.625, abs=0.01)
     assert report["bytes_ratio"] == pytest.approx(197 / 256, abs=1e-3)
     assert three["evaluate_and_per_s"] < report["aes_blocks_per_s"] / 3
+
+
+def test_each_engine_in_the_same_run():
+    """Both engines where the native kernel can run: each its own entry, the same stream
+    bytes, the top-level fields those of the engine the daemons would serve with."""
+    names = available_engines()
+    report = engine_report(wide_layers=1, deep_layers=4, schemes=("halfgates",))["engine"]
+    assert tuple(report["engines"]) == names
+    for name, entry in report["engines"].items():
+        assert entry["engine"] == name and all(entry[k] > 0 for k in RATES[1:])
+        assert entry["stream_bytes"] == report["stream_bytes"]
+    assert report["engine"] == report["serving"] == engines.resolve()
+    assert report["garble_and_per_s"] == report["engines"][report["engine"]][
+        "garble_and_per_s"]
+    numpy_only = engine_report(wide_layers=1, deep_layers=4, schemes=("halfgates",),
+                               engine_names=("numpy",))["engine"]
+    assert set(numpy_only["engines"]) == {"numpy"} and numpy_only["engine"] == "numpy"
+    with pytest.raises(ValueError, match="engines"):
+        engine_report(wide_layers=1, deep_layers=4, engine_names=("gpu",))
 
 
 def test_one_scheme_at_the_top():

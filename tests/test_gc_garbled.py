@@ -23,6 +23,7 @@ from snail_common.gc import (
     fresh_seed,
     garbled_run,
 )
+from snail_common.gc.native.run import program_for
 
 
 @st.composite
@@ -261,6 +262,7 @@ def test_memory_is_live_slots_plus_a_frame():
     fixed-size scratch and a frame, never the garbled circuit (here 1.2 MB of tables)."""
     schedule = schedule_circuit(wide_and_layers(64, 300))
     plan_for(schedule)  # the plan is per circuit, like the schedule: built before measuring
+    program_for(schedule, 64)  # and so is the native kernel's program of it
     seed, delta = fresh_seed(), fresh_delta()
     labels = active_input_labels(seed, delta, np.zeros(schedule.n_inputs, bool))
     tracemalloc.start()

@@ -5,9 +5,9 @@ from types import SimpleNamespace
 from snail_garbler.daemon import MAX_FRAME_BYTES, MAX_FRAMES, frame_plan
 
 
-def frames_of(n_and: int, n_steps: int) -> tuple[int, int]:
+def frames_of(n_and: int, n_steps: int, engine: str = "numpy") -> tuple[int, int]:
     """(frame bytes, frames per run) for a half-gates circuit of this shape."""
-    _, size = frame_plan(SimpleNamespace(n_and=n_and, n_steps=n_steps))
+    _, size = frame_plan(SimpleNamespace(n_and=n_and, n_steps=n_steps), engine=engine)
     return size, -(-32 * n_and // size)
 
 
@@ -25,3 +25,11 @@ def test_a_small_circuit_keeps_its_overlap():
     size, frames = frames_of(189_000, 3_700)
     assert 30 <= frames <= MAX_FRAMES
     assert size < 256 << 10
+
+
+def test_the_native_kernel_sends_few_full_frames():
+    """The native kernel garbles n = 6 in a few ms: a handful of 1 MiB frames (each frame
+    costs both daemons thread hand-offs and a TLS write and read), and n = 256 as numpy."""
+    size, frames = frames_of(175_752, 3_500, "native")
+    assert size == MAX_FRAME_BYTES and frames <= 8
+    assert frames_of(5_980_000, 15_000, "native") == frames_of(5_980_000, 15_000)

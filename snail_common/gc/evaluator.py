@@ -16,7 +16,9 @@ from snail_common.circuit.plan import plan_for
 from snail_common.circuit.runner import first_block, next_block, run_plan
 from snail_common.circuit.schedule import Schedule
 
+from .engine import resolve
 from .halfgates import HalfGates
+from .native.run import NativeRun
 from .stream import (
     HEADER,
     SCHEME_HALF_GATES,
@@ -31,10 +33,12 @@ from .threehalves import ThreeHalves
 class Evaluator:
     """Evaluates one run of ``schedule`` from the client's active input labels
     (slots 0 .. n_inputs+1: constant 0, constant 1, then the inputs). With ``scheme``
-    (a stream scheme number) a stream garbled under another scheme is refused."""
+    (a stream scheme number) a stream garbled under another scheme is refused. ``engine``
+    picks the engine (engine.py; either evaluates either's stream)."""
 
     def __init__(self, schedule: Schedule, input_labels: np.ndarray,
-                 scheme: int | None = None) -> None:
+                 scheme: int | None = None, engine: str | None = None) -> None:
+        self.engine = resolve(engine)
         s = self._schedule = schedule
         self._expected_scheme = scheme
         inputs = np.asarray(input_labels, dtype=np.uint64)
@@ -48,6 +52,7 @@ class Evaluator:
         self.header: Header | None = None
         self._run = None  # the suspended schedule run, once the header is read
         self._block: int | None = None  # gates of the block it waits for; None: finished
+        self._native: NativeRun | None = None  # the native engine's run instead
 
     @property
     def done(self) -> bool:
@@ -95,6 +100,11 @@ class Evaluator:
             raise StreamError(f"the stream is garbled with scheme {header.scheme}, the "
                               f"session agreed on {self._expected_scheme}")
         self.header = header
+        if self.engine == "native":
+            self._native = NativeRun(s, header.block_gates, header.scheme, self._labels,
+                                     [header.key])
+            self._block = 0  # not finished: _run_blocks runs the ops
+            return
         kind = HalfGates if header.scheme == SCHEME_HALF_GATES else ThreeHalves
         kernel = kind(header.key, header.block_gates)
         self._run = run_plan(plan_for(s), self._labels, kernel.evaluate, header.block_gates)
@@ -102,6 +112,8 @@ class Evaluator:
 
     def _run_blocks(self, data: memoryview) -> int:
         """Run blocks while the data holds their tables; returns the bytes consumed."""
+        if self._native is not None:
+            return self._run_native(data)
         scheme, size, pos = self.header.scheme, len(data), 0
         while self._block is not None:
             m = self._block
@@ -114,10 +126,25 @@ class Evaluator:
             self._block = next_block(self._run, tables)
         return pos
 
+    def _run_native(self, data: memoryview) -> int:
+        """The native engine's _run_blocks: one kernel call for every op the data holds
+        the tables of."""
+        run = self._native
+        end, words = run.fit(len(data) // 8)
+        if end > run.pos:
+            tables = np.frombuffer(data, np.uint64, words).reshape(1, words) if words else None
+            run.run(end, tables)
+        if run.done:
+            self._block = None
+        else:
+            self._need = 8 * run.next_words()
+        return 8 * words
 
-def evaluate_stream(schedule: Schedule, input_labels: np.ndarray, frames) -> np.ndarray:
+
+def evaluate_stream(schedule: Schedule, input_labels: np.ndarray, frames,
+                    engine: str | None = None) -> np.ndarray:
     """Feed every frame of an iterable stream; return the active output labels."""
-    ev = Evaluator(schedule, input_labels)
+    ev = Evaluator(schedule, input_labels, engine=engine)
     for frame in frames:
         ev.feed(frame)
     return ev.output_labels()

@@ -16,8 +16,10 @@ from snail_common.circuit.plan import plan_for
 from snail_common.circuit.runner import first_block, next_block, run_plan
 from snail_common.circuit.schedule import Schedule
 
+from .engine import resolve
 from .halfgates import HalfGates
 from .labels import check_delta, derive_zero_labels
+from .native.run import NativeRun
 from .stream import (
     BLOCK_GATES,
     FRAME_BYTES,
@@ -37,13 +39,16 @@ class Garbler:
     ``scheme`` ("halfgates" or "threehalves", or the stream's scheme number).
 
     ``frames()`` yields the stream (header first); once it is exhausted,
-    ``output_zero_labels`` holds what the client needs to decode.
+    ``output_zero_labels`` holds what the client needs to decode. ``engine`` picks the
+    engine (engine.py; the stream is the same on either).
     """
 
     def __init__(self, schedule: Schedule, seed: bytes, delta: np.ndarray | bytes,
                  key: bytes | None = None, block_gates: int = BLOCK_GATES,
-                 frame_bytes: int = FRAME_BYTES, scheme: str | int = SCHEME_HALF_GATES) -> None:
+                 frame_bytes: int = FRAME_BYTES, scheme: str | int = SCHEME_HALF_GATES,
+                 engine: str | None = None) -> None:
         scheme = scheme_id(scheme)
+        self.engine = resolve(engine)
         if not 1 <= block_gates <= MAX_BLOCK_GATES:
             raise ValueError(f"block_gates must be in 1..{MAX_BLOCK_GATES}, got {block_gates}")
         if key is not None and len(key) != KEY_BYTES:
@@ -79,6 +84,10 @@ class Garbler:
         yield self.header.pack()
         labels = np.empty((s.n_slots, 2), np.uint64)
         labels[: len(self._input_zero)] = self._input_zero
+        if self.engine == "native":
+            yield from self._native_frames(labels)
+            self._outputs = labels[s.output_slots].copy()
+            return
         scheme = self.header.scheme
         kernel = (HalfGates(self.header.key, block, self._delta) if scheme == SCHEME_HALF_GATES
                   else ThreeHalves(self.header.key, block, self._delta, self._random_key))
@@ -96,3 +105,18 @@ class Garbler:
         if pos:
             yield memoryview(frame[:pos]).cast("B")
         self._outputs = labels[s.output_slots].copy()
+
+    def _native_frames(self, labels: np.ndarray) -> Iterator[memoryview]:
+        """The frames after the header, each filled by one kernel call."""
+        h = self.header
+        run = NativeRun(self._schedule, h.block_gates, h.scheme, labels, [h.key],
+                        self._delta.reshape(1, 2), self._random_key)
+        words = self._frame_bytes // 8
+        while not run.done:
+            end, used = run.fit(words)
+            if end == run.pos:
+                raise RuntimeError("a block's tables exceed the frame")
+            frame = np.empty((1, words), np.uint64)
+            run.run(end, frame)
+            if used:
+                yield memoryview(frame[0, :used]).cast("B")

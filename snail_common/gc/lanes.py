@@ -19,8 +19,10 @@ from snail_common.circuit.plan import plan_for
 from snail_common.circuit.runner import first_block, next_block, run_plan
 from snail_common.circuit.schedule import Schedule
 
+from .engine import resolve
 from .labels import check_delta, derive_zero_labels
 from .lane_kernel import LaneHalfGates
+from .native.run import NativeRun
 from .stream import (
     BLOCK_GATES,
     BYTES_PER_AND,
@@ -52,12 +54,14 @@ class LaneGarbler:
     """Garbles one run of ``schedule`` per (seed, delta, key) lane, all in one pass.
 
     ``frames()`` yields, per frame, a list with each lane's bytes (headers first); each
-    lane's concatenated frames are that lane's stream.
+    lane's concatenated frames are that lane's stream. ``engine``: see engine.py.
     """
 
     def __init__(self, schedule: Schedule, seeds: Sequence[bytes],
                  deltas: Sequence[np.ndarray | bytes], keys: Sequence[bytes] | None = None,
-                 block_gates: int = BLOCK_GATES, frame_bytes: int = FRAME_BYTES) -> None:
+                 block_gates: int = BLOCK_GATES, frame_bytes: int = FRAME_BYTES,
+                 engine: str | None = None) -> None:
+        self.engine = resolve(engine)
         if not seeds or len(seeds) != len(deltas):
             raise ValueError(f"need one delta per seed, got {len(seeds)} seeds and "
                              f"{len(deltas)} deltas")
@@ -88,6 +92,9 @@ class LaneGarbler:
         s, block = self._schedule, self.headers[0].block_gates
         yield [h.pack() for h in self.headers]
         labels = _lane_rows(self._input_zero, s.n_slots)
+        if self.engine == "native":
+            yield from self._native_frames(labels)
+            return
         kernel = LaneHalfGates([h.key for h in self.headers], block, self._deltas)
         frame = np.empty((self.lanes, self._frame_words), np.uint64)
         run = run_plan(plan_for(s), labels, kernel.garble, block)
@@ -103,13 +110,32 @@ class LaneGarbler:
             yield [lane[:pos].tobytes() for lane in frame]
         self._outputs = [_lane_labels(labels, s.output_slots, k) for k in range(self.lanes)]
 
+    def _native_frames(self, labels: np.ndarray) -> Iterator[list[bytes]]:
+        """The frames after the headers, each filled by one kernel call."""
+        s = self._schedule
+        run = NativeRun(s, self.headers[0].block_gates, SCHEME_HALF_GATES, labels,
+                        [h.key for h in self.headers], self._deltas)
+        frame = np.empty((self.lanes, self._frame_words), np.uint64)
+        while not run.done:
+            end, used = run.fit(self._frame_words)
+            if end == run.pos:
+                raise RuntimeError("a block's tables exceed the frame")
+            run.run(end, frame)
+            if used:
+                yield [lane[:used].tobytes() for lane in frame]
+        self._outputs = [_lane_labels(labels, s.output_slots, k) for k in range(self.lanes)]
+
 
 class LaneEvaluator:
     """Evaluates one run of ``schedule`` per lane from each lane's active input labels;
     ``feed(lane, data)`` takes that lane's stream cut anywhere, and the pass advances as
-    far as every lane's bytes allow (a lane that lags holds the others)."""
+    far as every lane's bytes allow (a lane that lags holds the others). ``engine``: see
+    engine.py."""
 
-    def __init__(self, schedule: Schedule, input_labels: Sequence[np.ndarray]) -> None:
+    def __init__(self, schedule: Schedule, input_labels: Sequence[np.ndarray],
+                 engine: str | None = None) -> None:
+        self.engine = resolve(engine)
+        self._native: NativeRun | None = None
         n_in = FIRST_INPUT + schedule.n_inputs
         for lane, rows in enumerate(input_labels):
             if np.shape(rows) != (n_in, 2):
@@ -182,6 +208,12 @@ class LaneEvaluator:
         if len(blocks) != 1:
             raise StreamError(f"lanes must share one block size, got {sorted(blocks)}")
         block = blocks.pop()
+        if self.engine == "native":
+            self._native = NativeRun(s, block, SCHEME_HALF_GATES, self._labels,
+                                     [h.key for h in self.headers])
+            self._run = True  # started; _advance runs the ops
+            self._block = 0
+            return True
         kernel = LaneHalfGates([h.key for h in self.headers], block)
         self._tables = np.empty((self.lanes, 2 * block, 2), np.uint64)
         self._run = run_plan(plan_for(s), self._labels, kernel.evaluate, block)
@@ -189,7 +221,9 @@ class LaneEvaluator:
         return True
 
     def _advance(self) -> None:
-        while self._block is not None:
+        if self._native is not None:
+            self._advance_native()
+        while self._block is not None and self._native is None:
             m = self._block
             need = _PER_AND * m
             if any(len(b) - r < need for k, (b, r) in enumerate(zip(self._buffers, self._read))
@@ -204,6 +238,26 @@ class LaneEvaluator:
                 tables[lane] = np.frombuffer(buf, np.uint64, 4 * m, r).reshape(2 * m, 2)
                 self._read[lane] = r + need
             self._block = next_block(self._run, tables)
+        self._trim()
+
+    def _advance_native(self) -> None:
+        """_advance's native engine: one kernel call for every op each live lane's bytes
+        hold the tables of."""
+        run = self._native
+        live = [k for k in range(self.lanes) if k not in self._dropped]
+        have = min(len(self._buffers[k]) - self._read[k] for k in live) // 8
+        end, words = run.fit(have)
+        if end > run.pos:
+            tables = np.zeros((self.lanes, max(words, 1)), np.uint64)
+            for lane in live:
+                r = self._read[lane]
+                tables[lane, :words] = np.frombuffer(self._buffers[lane], np.uint64, words, r)
+                self._read[lane] = r + 8 * words
+            run.run(end, tables)
+        if run.done:
+            self._block = None
+
+    def _trim(self) -> None:
         for lane, buf in enumerate(self._buffers):  # drop what was used, now and then
             if self._read[lane] > (1 << 20) or self._read[lane] == len(buf):
                 del buf[: self._read[lane]]

@@ -10,6 +10,8 @@ from typing import Any, NoReturn
 import click
 
 from snail_common.circuit import cache, registry
+from snail_common.gc.engine import ENGINE_ENV, engine_status
+from snail_common.gc.native.build import NativeUnavailable
 
 from .conn import parse_addr
 from .service import Options
@@ -133,6 +135,16 @@ def configure_caches(kwargs: dict[str, Any]) -> None:
     """Apply --cache-dir, --cache-max-gb and --memory-cache-gb to this process."""
     cache.configure(kwargs["cache_dir"], int(kwargs["cache_max_gb"] * 2**30))
     registry.configure(int(kwargs["memory_cache_gb"] * 2**30))
+
+
+def choose_engine(prog: str) -> dict[str, str]:
+    """The garbling engine this daemon serves with ($SNAIL_ENGINE, gc/engine.py), built
+    now (the native kernel compiles on first use); exit 2 naming the setting when it asks
+    for an engine that cannot run."""
+    try:
+        return engine_status()
+    except (ValueError, NativeUnavailable) as exc:
+        fail(2, f"${ENGINE_ENV}: {exc}", prog)
 
 
 def fail(code: int, message: str, prog: str | None = None) -> NoReturn:

@@ -75,6 +75,10 @@ class Listener:
     def prometheus(self) -> str:
         raise NotImplementedError
 
+    def startup_fields(self) -> dict[str, Any]:
+        """What the ``listening`` line adds for this daemon."""
+        return {}
+
     async def serve(self, conn: Connection) -> None:
         raise NotImplementedError
 
@@ -157,7 +161,8 @@ class Listener:
                  pid=os.getpid(), instance=self.instance,
                  max_sessions=self.options.max_sessions,
                  max_and_gates=self.options.max_and_gates,
-                 workers=self.options.workers, revoked=len(self.revoked))
+                 workers=self.options.workers, revoked=len(self.revoked),
+                 **self.startup_fields())
         scrapes = await self._serve_metrics()
         await self.stopping.wait()
         event(self.log, "shutting_down", active=self.counters["active"],

@@ -52,6 +52,7 @@ import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from snail_common.gc.engine import ENGINES
 from snail_common.gc.stream import SCHEMES
 
 from .errors import MALFORMED, MISSING_FIELD, UNKNOWN_FIELD, UNKNOWN_TYPE, ProtocolError
@@ -173,7 +174,7 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "stats": ({"sid": sid, "traffic": number_map(int), "timing": number_map(float)}, {}),
     "health_request": ({}, {}),
     "health": ({"role": one_of(ROLES), "sessions": number_map(int), "uptime_s": seconds},
-               {}),
+               {"engine": one_of(ENGINES), "engine_reason": text()}),
     "error": ({"code": text(64), "message": text()}, {"sid": sid}),
     "bye": ({}, {}),
     # the map-owner setting

@@ -26,6 +26,8 @@ from snail_common.circuit import registry
 from snail_common.circuit.ir import Circuit
 from snail_common.circuit.plan import plan_for
 from snail_common.circuit.schedule import Schedule
+from snail_common.gc.native.run import program_for
+from snail_common.gc.stream import BLOCK_GATES
 
 from . import messages
 from .conn import SOFTWARE, Connection
@@ -65,6 +67,7 @@ class Daemon(Listener):
         self._planned: dict[str, int] = {}  # circuit id -> id() of the planned schedule
         self._peer_sessions: Counter[str] = Counter()
         self.heap = HeapTrimmer()
+        self.engine: dict[str, str] = {}  # which garbling engine serves (use_engine)
 
     async def run(self, host: str, port: int, ctx: ssl.SSLContext) -> None:
         """Serve until stopped (``Listener.run``), then let the workers go."""
@@ -81,9 +84,20 @@ class Daemon(Listener):
                              max_and_gates=self.options.max_and_gates,
                              instance=self.instance)
 
+    def use_engine(self, status: dict[str, str]) -> None:
+        """Record which garbling engine serves (gc/engine.py's ``engine_status``), for
+        the start-up line and ``health``."""
+        self.engine = {"engine": status["engine"]}
+        if "reason" in status:
+            self.engine["engine_reason"] = status["reason"]
+
+    def startup_fields(self) -> dict[str, Any]:
+        return self.engine
+
     def health(self) -> dict[str, Any]:
         return messages.make("health", role=self.role, sessions=self.metrics.health(),
-                             uptime_s=round(time.monotonic() - self.started, 3))
+                             uptime_s=round(time.monotonic() - self.started, 3),
+                             **self.engine)
 
     def prometheus(self) -> str:
         return self.metrics.prometheus()
@@ -110,7 +124,8 @@ class Daemon(Listener):
                                         self.options.max_and_gates)
                 _same_hash(circuit_id, iface.content_hash, content_hash)
                 circuit, schedule = await self.work(_prepare, circuit_id,
-                                                    self.options.max_and_gates)
+                                                    self.options.max_and_gates,
+                                                    self.engine.get("engine") == "native")
                 self._planned[circuit_id] = id(schedule)
         except registry.UnknownCircuit as exc:
             raise ProtocolError(UNKNOWN_CIRCUIT, str(exc)) from None
@@ -234,9 +249,13 @@ def _same_hash(circuit_id: str, ours: str, theirs: str) -> None:
                                               f"{theirs[:16]}...")
 
 
-def _prepare(circuit_id: str, max_and: int) -> tuple[Circuit, Schedule]:
-    """Compile (or load) the circuit and build its engine plan once."""
+def _prepare(circuit_id: str, max_and: int, native: bool) -> tuple[Circuit, Schedule]:
+    """Compile (or load) the circuit and build its engine plan once (and the native
+    kernel's program of it for the usual block size: checking its indices takes a few
+    tenths of a second at n = 256, which the first session need not wait for)."""
     circuit, schedule = registry.compiled(circuit_id, max_and)
     plan_for(schedule)
+    if native:
+        program_for(schedule, BLOCK_GATES)
     return circuit, schedule
 

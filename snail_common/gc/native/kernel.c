@@ -1,0 +1,518 @@
+/* snail native garbling kernel: a whole engine program (or a contiguous range of its ops)
+ * garbled or evaluated in one call, half-gates or three-halves, one run or L lanes.
+ *
+ * The math is that of snail_common/gc/halfgates.py, threehalves.py and lane_kernel.py
+ * (their docstrings derive it); this file is the same computation gate by gate, with the
+ * fixed-key hash H(x, t) = AES_k(sigma(x) ^ (0, t)) ^ sigma(x) on the CPU's AES
+ * instructions. Its tables, labels and outputs are bit for bit the numpy engine's
+ * (tests/test_gc_native.py).
+ *
+ * The program (built and bounds-checked in Python, snail_common/gc/native/program.py) is
+ * a list of ops, OP_WORDS int64 each, over a table of row descriptors:
+ *   op:   kind, n, first, rows, dst, aux
+ *   AND:      gates first .. first+n-1 (n <= one stream block); rows -> out, a, b
+ *   XOR:      out[i] = XOR of `first` columns; rows -> out, column 0, column 1, ...
+ *   RAGGED:   out[i] = XOR of slots terms[starts[i] .. starts[i+1]) (last: .. aux);
+ *             rows -> out, terms, starts
+ *   PUBLISH:  out rows = scratch rows dst .. dst+n-1 (a step whose results wait)
+ *   dst = -1 writes an op's results to its out rows, else to scratch rows dst .. dst+n-1.
+ *   row descriptor: kind, a, b: SLICE (slot a + i*b; b = 0 repeats one slot), I32 or I64
+ *   (an index list at address a).
+ * Nothing here checks an index: the caller has checked every one against the slot
+ * array, the scratch and the tables before the call.
+ */
+#include <cpuid.h>
+#include <immintrin.h>
+#include <stdint.h>
+#include <string.h>
+
+#define TGT __attribute__((target("aes,sse4.1,ssse3")))
+#define INLINE static inline __attribute__((always_inline))
+
+enum { OP_AND = 0, OP_XOR = 1, OP_RAGGED = 2, OP_PUBLISH = 3 };
+enum { R_SLICE = 0, R_I32 = 1, R_I64 = 2 };
+enum { OP_WORDS = 6 };
+enum { MODE_GARBLE = 0, MODE_EVALUATE = 1 };
+enum { SCHEME_HALF_GATES = 1, SCHEME_THREE_HALVES = 2 };
+enum { MAX_LANES = 256 };
+/* gates per AES batch: 8 independent AES blocks fill the pipeline (4 cycles latency, 2 per
+ * cycle) and still fit the 16 vector registers */
+#define HG_GARBLE_BATCH 2
+#define HG_EVAL_BATCH 4
+#define TH_GARBLE_BATCH 2
+#define TH_EVAL_BATCH 3
+#define BATCH 4 /* the largest */
+
+typedef struct {
+    int64_t kind, a, b;
+} rows_t;
+
+/* 1 when the CPU has what this file uses (AES-NI, SSSE3, SSE4.1). */
+int snail_cpu_ok(void) {
+    unsigned a, b, c, d;
+    if (!__get_cpuid(1, &a, &b, &c, &d)) return 0;
+    return (c & bit_AES) && (c & bit_SSE4_1) && (c & bit_SSSE3);
+}
+
+INLINE int64_t row_at(const rows_t *r, int64_t i) {
+    switch (r->kind) {
+    case R_SLICE: return r->a + i * r->b;
+    case R_I32: return ((const int32_t *)(intptr_t)r->a)[i];
+    default: return ((const int64_t *)(intptr_t)r->a)[i];
+    }
+}
+
+/* ---------------------------------------------------------------- AES-128 (AES-NI) */
+
+typedef struct {
+    __m128i rk[11];
+} aes_key;
+
+TGT INLINE __m128i expand_step(__m128i k, __m128i t) {
+    t = _mm_shuffle_epi32(t, 0xff);
+    k = _mm_xor_si128(k, _mm_slli_si128(k, 4));
+    k = _mm_xor_si128(k, _mm_slli_si128(k, 4));
+    k = _mm_xor_si128(k, _mm_slli_si128(k, 4));
+    return _mm_xor_si128(k, t);
+}
+
+#define EXPAND(i, rcon) \
+    ks->rk[i] = expand_step(ks->rk[i - 1], _mm_aeskeygenassist_si128(ks->rk[i - 1], rcon))
+
+TGT static void aes_expand(aes_key *ks, const uint8_t *key) {
+    ks->rk[0] = _mm_loadu_si128((const __m128i *)key);
+    EXPAND(1, 0x01); EXPAND(2, 0x02); EXPAND(3, 0x04); EXPAND(4, 0x08); EXPAND(5, 0x10);
+    EXPAND(6, 0x20); EXPAND(7, 0x40); EXPAND(8, 0x80); EXPAND(9, 0x1b); EXPAND(10, 0x36);
+}
+
+/* n blocks at once (n a constant after inlining: unrolled, the blocks in registers) */
+TGT INLINE void aes_n(const aes_key *ks, __m128i *x, int n) {
+#pragma GCC unroll 16
+    for (int i = 0; i < n; i++) x[i] = _mm_xor_si128(x[i], ks->rk[0]);
+#pragma GCC unroll 9
+    for (int r = 1; r < 10; r++) {
+        __m128i k = ks->rk[r];
+#pragma GCC unroll 16
+        for (int i = 0; i < n; i++) x[i] = _mm_aesenc_si128(x[i], k);
+    }
+#pragma GCC unroll 16
+    for (int i = 0; i < n; i++) x[i] = _mm_aesenclast_si128(x[i], ks->rk[10]);
+}
+
+/* sigma(x0, x1) = (x0 ^ x1, x0), word 0 the low one */
+TGT INLINE __m128i sigma(__m128i x) {
+    return _mm_xor_si128(_mm_shuffle_epi32(x, 0x4e), _mm_move_epi64(x));
+}
+
+/* all ones where lsb(word 0) is 1, both words */
+TGT INLINE __m128i lsb_mask(__m128i x) {
+    __m128i bit = _mm_and_si128(x, _mm_set_epi64x(0, 1));
+    return _mm_shuffle_epi32(_mm_sub_epi64(_mm_setzero_si128(), bit), 0x44);
+}
+
+TGT INLINE __m128i tweak(uint64_t t) { return _mm_set_epi64x((long long)t, 0); }
+
+INLINE uint64_t load64(const uint64_t *p) {
+    uint64_t v;
+    memcpy(&v, p, 8);
+    return v;
+}
+
+INLINE void store64(uint64_t *p, uint64_t v) { memcpy(p, &v, 8); }
+
+/* ---------------------------------------------------------------- one AND op */
+
+#define CHUNK 64 /* rows whose slot addresses are resolved at once */
+
+typedef struct {
+    int mode, scheme;
+    int64_t width; /* words per slot row: 2 per lane */
+    int64_t lanes;
+    uint64_t *values, *scratch;
+    uint64_t *tables;   /* the current op's tables, lane 0 */
+    int64_t lane_words; /* distance between two lanes' tables */
+    aes_key keys[MAX_LANES];
+    __m128i delta[MAX_LANES];
+    aes_key rand_key; /* three-halves garbling: the garbler's random bits */
+    int64_t rand_block;
+    __m128i rand_bits;
+} ctx_t;
+
+/* addresses of rows i0 .. i0+m-1 of `r` in `values` (the descriptor's kind decided once) */
+INLINE void row_ptrs(const rows_t *r, int64_t i0, int64_t m, uint64_t *values, int64_t width,
+                     uint64_t **out) {
+    switch (r->kind) {
+    case R_SLICE: {
+        uint64_t *p = values + (r->a + i0 * r->b) * width;
+        int64_t step = r->b * width;
+        for (int64_t k = 0; k < m; k++) out[k] = p + k * step;
+        break;
+    }
+    case R_I32: {
+        const int32_t *q = (const int32_t *)(intptr_t)r->a + i0;
+        for (int64_t k = 0; k < m; k++) out[k] = values + (int64_t)q[k] * width;
+        break;
+    }
+    default: {
+        const int64_t *q = (const int64_t *)(intptr_t)r->a + i0;
+        for (int64_t k = 0; k < m; k++) out[k] = values + q[k] * width;
+    }
+    }
+}
+
+/* where rows i0 .. i0+m-1 of an op's results go: its out rows, or scratch rows dst + i */
+INLINE void out_ptrs(ctx_t *c, const rows_t *out, int64_t dst, int64_t i0, int64_t m,
+                     uint64_t **p) {
+    if (dst < 0) {
+        row_ptrs(out, i0, m, c->values, c->width, p);
+        return;
+    }
+    for (int64_t k = 0; k < m; k++) p[k] = c->scratch + (dst + i0 + k) * c->width;
+}
+
+typedef struct {
+    uint64_t *a[CHUNK], *b[CHUNK], *o[CHUNK];
+} chunk_t;
+
+#define LD(p) _mm_loadu_si128((const __m128i *)(p))
+#define ST(p, v) _mm_storeu_si128((__m128i *)(p), v)
+
+/* half-gates garbling of gates i .. i+g-1 (chunk rows j ..) of an op of n gates */
+TGT INLINE void hg_garble(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first, int64_t i,
+                          int j, int g, int64_t lane) {
+    __m128i a0[BATCH], b0[BATCH], x[4 * BATCH], y[4 * BATCH];
+    __m128i d = c->delta[lane], sd = sigma(d);
+    int64_t w = 2 * lane;
+    _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
+        uint64_t gate = first + (uint64_t)(i + k);
+        a0[k] = LD(ch->a[j + k] + w);
+        b0[k] = LD(ch->b[j + k] + w);
+        x[k] = _mm_xor_si128(sigma(a0[k]), tweak(2 * gate));
+        x[g + k] = _mm_xor_si128(sigma(b0[k]), tweak(2 * gate + 1));
+        x[2 * g + k] = _mm_xor_si128(x[k], sd);
+        x[3 * g + k] = _mm_xor_si128(x[g + k], sd);
+    }
+    _Pragma("GCC unroll 16") for (int k = 0; k < 4 * g; k++) y[k] = x[k];
+    aes_n(&c->keys[lane], y, 4 * g);
+    __m128i *t = (__m128i *)(c->tables + lane * c->lane_words);
+    _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
+        __m128i ta = _mm_xor_si128(_mm_xor_si128(y[k], y[2 * g + k]), sd);
+        __m128i tb = _mm_xor_si128(_mm_xor_si128(y[g + k], y[3 * g + k]), sd);
+        __m128i pa = lsb_mask(a0[k]), pb = lsb_mask(b0[k]);
+        __m128i tg = _mm_xor_si128(ta, _mm_and_si128(pb, d));
+        __m128i ya = _mm_xor_si128(_mm_xor_si128(y[k], x[k]), _mm_and_si128(pa, tg));
+        __m128i yb = _mm_xor_si128(_mm_xor_si128(y[g + k], x[g + k]), _mm_and_si128(pb, tb));
+        ST(t + i + k, tg);
+        ST(t + n + i + k, _mm_xor_si128(tb, a0[k]));
+        ST(ch->o[j + k] + w, _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_set_epi64x(1, 0)));
+    }
+}
+
+/* half-gates evaluation of gates i .. i+g-1 */
+TGT INLINE void hg_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first, int64_t i,
+                            int j, int g, int64_t lane) {
+    __m128i a[BATCH], b[BATCH], x[2 * BATCH], y[2 * BATCH];
+    int64_t w = 2 * lane;
+    _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
+        uint64_t gate = first + (uint64_t)(i + k);
+        a[k] = LD(ch->a[j + k] + w);
+        b[k] = LD(ch->b[j + k] + w);
+        y[k] = x[k] = _mm_xor_si128(sigma(a[k]), tweak(2 * gate));
+        y[g + k] = x[g + k] = _mm_xor_si128(sigma(b[k]), tweak(2 * gate + 1));
+    }
+    aes_n(&c->keys[lane], y, 2 * g);
+    const __m128i *t = (const __m128i *)(c->tables + lane * c->lane_words);
+    _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
+        __m128i sa = lsb_mask(a[k]), sb = lsb_mask(b[k]);
+        __m128i tg = LD(t + i + k), te = LD(t + n + i + k);
+        __m128i ya = _mm_xor_si128(_mm_xor_si128(y[k], x[k]), _mm_and_si128(sa, tg));
+        __m128i yb = _mm_xor_si128(_mm_xor_si128(y[g + k], x[g + k]), _mm_and_si128(sb, te));
+        __m128i o = _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_and_si128(sb, a[k]));
+        ST(ch->o[j + k] + w, _mm_xor_si128(o, _mm_set_epi64x(1, 0)));
+    }
+}
+
+INLINE uint64_t lo64(__m128i v) { return (uint64_t)_mm_cvtsi128_si64(v); }
+
+TGT INLINE uint64_t hi64(__m128i v) { return (uint64_t)_mm_extract_epi64(v, 1); }
+
+/* the garbler's random bits r0, r1 of gate g: bits 2g, 2g+1 of AES-CTR under its key,
+ * counter block j = (j, 0), 64 gates per block (threehalves._RandomBits) */
+TGT INLINE void rand_bits(ctx_t *c, uint64_t g, uint64_t *r0, uint64_t *r1) {
+    int64_t j = (int64_t)(g / 64);
+    if (j != c->rand_block) {
+        __m128i v = _mm_set_epi64x(0, (long long)j);
+        aes_n(&c->rand_key, &v, 1);
+        c->rand_bits = v;
+        c->rand_block = j;
+    }
+    unsigned pos = 2 * (unsigned)(g % 64);
+    uint64_t w = pos < 64 ? lo64(c->rand_bits) : hi64(c->rand_bits);
+    *r0 = (w >> (pos % 64)) & 1;
+    *r1 = (w >> (pos % 64 + 1)) & 1;
+}
+
+INLINE void set_bit(uint64_t *ctl, int64_t bit, uint64_t v) {
+    uint64_t w = load64(ctl + bit / 64);
+    store64(ctl + bit / 64, w | (v << (bit % 64)));
+}
+
+INLINE uint64_t get_bit(const uint64_t *ctl, int64_t bit) {
+    return (load64(ctl + bit / 64) >> (bit % 64)) & 1;
+}
+
+/* three-halves garbling of gates i .. i+g-1 (threehalves.py, ThreeHalves.garble) */
+TGT INLINE void th_garble(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first, int64_t i,
+                          int j, int g) {
+    __m128i lab[6 * BATCH], y[6 * BATCH];
+    uint64_t alpha[BATCH], beta[BATCH];
+    __m128i d = c->delta[0];
+    _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
+        uint64_t gate = first + (uint64_t)(i + k);
+        __m128i a0 = LD(ch->a[j + k]), b0 = LD(ch->b[j + k]);
+        alpha[k] = lo64(a0) & 1;
+        beta[k] = lo64(b0) & 1;
+        __m128i *l = lab + 6 * k; /* colour-0 labels: A, A^D, B, B^D, A^B, A^B^D */
+        l[0] = _mm_xor_si128(a0, _mm_and_si128(lsb_mask(a0), d));
+        l[1] = _mm_xor_si128(l[0], d);
+        l[2] = _mm_xor_si128(b0, _mm_and_si128(lsb_mask(b0), d));
+        l[3] = _mm_xor_si128(l[2], d);
+        l[4] = _mm_xor_si128(l[0], l[2]);
+        l[5] = _mm_xor_si128(l[4], d);
+        _Pragma("GCC unroll 6") for (int h = 0; h < 6; h++)
+            y[6 * k + h] = _mm_xor_si128(sigma(l[h]), tweak(3 * gate + (uint64_t)(h / 2)));
+    }
+    aes_n(&c->keys[0], y, 6 * g);
+    uint64_t *tab = c->tables, *ctl = c->tables + 3 * n;
+    uint64_t dl = lo64(d), dr = hi64(d);
+    _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
+        int64_t q = i + k;
+        uint64_t h[6], hb[6];
+        _Pragma("GCC unroll 6") for (int e = 0; e < 6; e++) {
+            __m128i hv = _mm_xor_si128(y[6 * k + e], sigma(lab[6 * k + e]));
+            h[e] = lo64(hv);
+            hb[e] = hi64(hv) & 1;
+        }
+        uint64_t al = lo64(lab[6 * k]), ar = hi64(lab[6 * k]);
+        uint64_t bl = lo64(lab[6 * k + 2]), br = hi64(lab[6 * k + 2]);
+        uint64_t s0 = al ^ ar ^ bl, s1 = al ^ br, s2 = ar ^ bl ^ br;
+        uint64_t r0, r1, a_ = alpha[k] ^ 1, b_ = beta[k] ^ 1;
+        rand_bits(c, first + (uint64_t)q, &r0, &r1);
+        uint64_t m0 = -r0, m1 = -r1, m2 = -(r0 ^ a_), m3 = -(r1 ^ b_), m4 = -(r0 ^ a_ ^ b_),
+                 m5 = -(r1 ^ a_), m6 = -(alpha[k] & beta[k]), m7 = -(a_ & b_),
+                 m8 = -(alpha[k] & b_);
+        uint64_t k00l = h[0] ^ h[4] ^ (m0 & s0) ^ (m1 & s1) ^ bl ^ (m6 & dl);
+        uint64_t k00r = h[2] ^ h[4] ^ (m0 & s1) ^ (m1 & s2) ^ ar ^ (m6 & dr);
+        uint64_t k11l = h[1] ^ h[4] ^ (m2 & (s0 ^ dr)) ^ (m3 & (s1 ^ dl ^ dr)) ^ (m7 & dl);
+        uint64_t k11r = h[3] ^ h[4] ^ (m2 & (s1 ^ dl ^ dr)) ^ (m3 & (s2 ^ dl)) ^ (m7 & dr);
+        uint64_t k01 = h[0] ^ h[5] ^ (m4 & (s0 ^ dl)) ^ (m5 & (s1 ^ dr)) ^ bl ^ (m8 & dl) ^ dl;
+        store64(tab + q, k00l ^ k11l);
+        store64(tab + n + q, k00r ^ k11r);
+        store64(tab + 2 * n + q, k00l ^ k01);
+        set_bit(ctl, q, r0 ^ hb[0] ^ hb[4]);
+        set_bit(ctl, n + q, r1 ^ hb[2] ^ hb[4]);
+        set_bit(ctl, 2 * n + q, a_ ^ hb[0] ^ hb[1]);
+        set_bit(ctl, 3 * n + q, b_ ^ hb[2] ^ hb[3]);
+        set_bit(ctl, 4 * n + q, a_ ^ b_ ^ hb[4] ^ hb[5]);
+        ST(ch->o[j + k], _mm_set_epi64x((long long)k00r, (long long)k00l));
+    }
+}
+
+/* three-halves evaluation of gates i .. i+g-1 (ThreeHalves.evaluate) */
+TGT INLINE void th_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first, int64_t i,
+                            int j, int g) {
+    __m128i lab[3 * BATCH], y[3 * BATCH];
+    _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
+        uint64_t gate = first + (uint64_t)(i + k);
+        __m128i *l = lab + 3 * k;
+        l[0] = LD(ch->a[j + k]);
+        l[1] = LD(ch->b[j + k]);
+        l[2] = _mm_xor_si128(l[0], l[1]);
+        _Pragma("GCC unroll 3") for (int h = 0; h < 3; h++)
+            y[3 * k + h] = _mm_xor_si128(sigma(l[h]), tweak(3 * gate + (uint64_t)h));
+    }
+    aes_n(&c->keys[0], y, 3 * g);
+    const uint64_t *tab = c->tables, *ctl = c->tables + 3 * n;
+    _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
+        int64_t q = i + k;
+        uint64_t h[3], hb[3];
+        _Pragma("GCC unroll 3") for (int e = 0; e < 3; e++) {
+            __m128i hv = _mm_xor_si128(y[3 * k + e], sigma(lab[3 * k + e]));
+            h[e] = lo64(hv);
+            hb[e] = hi64(hv) & 1;
+        }
+        uint64_t al = lo64(lab[3 * k]), ar = hi64(lab[3 * k]);
+        uint64_t bl = lo64(lab[3 * k + 1]), br = hi64(lab[3 * k + 1]);
+        uint64_t s0 = al ^ ar ^ bl, s1 = al ^ br, s2 = ar ^ bl ^ br;
+        uint64_t ci = al & 1, cj = bl & 1, x = ci ^ cj;
+        uint64_t z0 = get_bit(ctl, q), z1 = get_bit(ctl, n + q), z2 = get_bit(ctl, 2 * n + q),
+                 z3 = get_bit(ctl, 3 * n + q), z4 = get_bit(ctl, 4 * n + q);
+        uint64_t r1 = z0 ^ (ci & z2) ^ (x & z4) ^ hb[0] ^ hb[2];
+        uint64_t r2 = z1 ^ (cj & z3) ^ (x & z4) ^ hb[1] ^ hb[2];
+        uint64_t g0 = load64(tab + q), g1 = load64(tab + n + q), g2 = load64(tab + 2 * n + q);
+        uint64_t mx = -x, mi = -ci, mj = -cj, mr1 = -r1, mr2 = -r2;
+        uint64_t cl = h[0] ^ h[2] ^ (mx & g2) ^ (mi & g0) ^ (mr1 & s0) ^ (mr2 & s1) ^ (~mi & bl);
+        uint64_t cr = h[1] ^ h[2] ^ (mx & g2) ^ (mj & g1) ^ (mr1 & s1) ^ (mr2 & s2) ^ (~mj & ar);
+        ST(ch->o[j + k], _mm_set_epi64x((long long)cr, (long long)cl));
+    }
+}
+
+/* a chunk's gates in batches of `batch`, the rest one by one */
+#define BATCHED(batch, call)                                             \
+    do {                                                                 \
+        int j = 0;                                                       \
+        for (; j + (batch) <= m; j += (batch)) call(i0 + j, j, (batch)); \
+        for (; j < m; j++) call(i0 + j, j, 1);                           \
+    } while (0)
+
+TGT static void and_op(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, uint64_t first) {
+    chunk_t ch;
+    if (c->scheme == SCHEME_THREE_HALVES && c->mode == MODE_GARBLE)
+        memset(c->tables + 3 * n, 0, 8 * (size_t)((5 * n + 63) / 64));
+    for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
+        int m = (int)(n - i0 < CHUNK ? n - i0 : CHUNK);
+        row_ptrs(&r[1], i0, m, c->values, c->width, ch.a);
+        row_ptrs(&r[2], i0, m, c->values, c->width, ch.b);
+        out_ptrs(c, &r[0], dst, i0, m, ch.o);
+        if (c->scheme == SCHEME_HALF_GATES) {
+            for (int64_t lane = 0; lane < c->lanes; lane++) {
+                if (c->mode == MODE_GARBLE) {
+#define HG_G(i, j, g) hg_garble(c, &ch, n, first, i, j, g, lane)
+                    BATCHED(HG_GARBLE_BATCH, HG_G);
+                } else {
+#define HG_E(i, j, g) hg_evaluate(c, &ch, n, first, i, j, g, lane)
+                    BATCHED(HG_EVAL_BATCH, HG_E);
+                }
+            }
+        } else if (c->mode == MODE_GARBLE) {
+#define TH_G(i, j, g) th_garble(c, &ch, n, first, i, j, g)
+            BATCHED(TH_GARBLE_BATCH, TH_G);
+        } else {
+#define TH_E(i, j, g) th_evaluate(c, &ch, n, first, i, j, g)
+            BATCHED(TH_EVAL_BATCH, TH_E);
+        }
+    }
+}
+
+/* ---------------------------------------------------------------- linear ops */
+
+#define REG_COLUMNS 8 /* up to this many columns, a row's XOR stays in registers */
+
+/* out[i] = XOR over columns, chunk by chunk: a row's XOR in registers when the columns
+ * are few, else column by column through the output row */
+TGT INLINE void xor_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t k,
+                         int64_t width) {
+    uint64_t *o[CHUNK], *p[REG_COLUMNS][CHUNK];
+    for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
+        int64_t m = n - i0 < CHUNK ? n - i0 : CHUNK;
+        out_ptrs(c, &r[0], dst, i0, m, o);
+        if (k <= REG_COLUMNS) {
+            for (int64_t col = 0; col < k; col++)
+                row_ptrs(&r[1 + col], i0, m, c->values, width, p[col]);
+            for (int64_t q = 0; q < m; q++)
+                for (int64_t w = 0; w < width; w += 2) {
+                    __m128i acc = LD(p[0][q] + w);
+                    for (int64_t col = 1; col < k; col++)
+                        acc = _mm_xor_si128(acc, LD(p[col][q] + w));
+                    ST(o[q] + w, acc);
+                }
+            continue;
+        }
+        row_ptrs(&r[1], i0, m, c->values, width, p[0]);
+        for (int64_t q = 0; q < m; q++) /* the first column, then XOR the others in */
+            for (int64_t w = 0; w < width; w += 2) ST(o[q] + w, LD(p[0][q] + w));
+        for (int64_t col = 1; col < k; col++) {
+            row_ptrs(&r[1 + col], i0, m, c->values, width, p[0]);
+            for (int64_t q = 0; q < m; q++)
+                for (int64_t w = 0; w < width; w += 2)
+                    ST(o[q] + w, _mm_xor_si128(LD(o[q] + w), LD(p[0][q] + w)));
+        }
+    }
+}
+
+TGT INLINE void ragged_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t terms,
+                            int64_t width) {
+    uint64_t *o[CHUNK];
+    for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
+        int64_t m = n - i0 < CHUNK ? n - i0 : CHUNK;
+        out_ptrs(c, &r[0], dst, i0, m, o);
+        for (int64_t q = 0; q < m; q++) {
+            int64_t i = i0 + q;
+            int64_t lo = row_at(&r[2], i), hi = i + 1 < n ? row_at(&r[2], i + 1) : terms;
+            for (int64_t w = 0; w < width; w += 2) {
+                __m128i acc = LD(c->values + row_at(&r[1], lo) * width + w);
+                for (int64_t t = lo + 1; t < hi; t++)
+                    acc = _mm_xor_si128(acc, LD(c->values + row_at(&r[1], t) * width + w));
+                ST(o[q] + w, acc);
+            }
+        }
+    }
+}
+
+TGT static void linear_op(ctx_t *c, int64_t kind, const rows_t *r, int64_t dst, int64_t n,
+                          int64_t k, int64_t aux) {
+    if (kind == OP_XOR) {
+        if (c->width == 2) xor_rows(c, r, dst, n, k, 2);
+        else xor_rows(c, r, dst, n, k, c->width);
+    } else if (kind == OP_RAGGED) {
+        if (c->width == 2) ragged_rows(c, r, dst, n, aux, 2);
+        else ragged_rows(c, r, dst, n, aux, c->width);
+    } else { /* PUBLISH */
+        uint64_t *o[CHUNK];
+        for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
+            int64_t m = n - i0 < CHUNK ? n - i0 : CHUNK;
+            row_ptrs(&r[0], i0, m, c->values, c->width, o);
+            for (int64_t q = 0; q < m; q++)
+                memcpy(o[q], c->scratch + (dst + i0 + q) * c->width, 8 * (size_t)c->width);
+        }
+    }
+}
+
+/* ---------------------------------------------------------------- entry point */
+
+/* Run ops lo .. hi-1 of a program over the slot array `values` (n_slots rows of 2*lanes
+ * words), garbling (mode 0: writes `tables`, reads `deltas`) or evaluating (mode 1:
+ * reads `tables`). Tables of the ops follow each other from `tables`, lane k's at
+ * tables + k * lane_words. `keys`: 16 bytes per lane; `rand_key`: three-halves garbling.
+ * Returns 0, or a negative number for an argument this file cannot run. */
+TGT int snail_run(int mode, int scheme, const int64_t *ops, int64_t lo, int64_t hi,
+                  const rows_t *rows, uint64_t *values, int64_t lanes, uint64_t *scratch,
+                  uint64_t *tables, int64_t lane_words, const uint8_t *keys,
+                  const uint64_t *deltas, const uint8_t *rand_key) {
+    if (lanes < 1 || lanes > MAX_LANES) return -1;
+    if (scheme != SCHEME_HALF_GATES && (scheme != SCHEME_THREE_HALVES || lanes != 1)) return -2;
+    if (mode != MODE_GARBLE && mode != MODE_EVALUATE) return -3;
+    if (mode == MODE_GARBLE && scheme == SCHEME_THREE_HALVES && !rand_key) return -4;
+    ctx_t c;
+    c.mode = mode;
+    c.scheme = scheme;
+    c.lanes = lanes;
+    c.width = 2 * lanes;
+    c.values = values;
+    c.scratch = scratch;
+    c.lane_words = lane_words;
+    for (int64_t k = 0; k < lanes; k++) {
+        aes_expand(&c.keys[k], keys + 16 * k);
+        c.delta[k] = mode == MODE_GARBLE ? _mm_loadu_si128((const __m128i *)(deltas + 2 * k))
+                                         : _mm_setzero_si128();
+    }
+    c.rand_block = -1;
+    c.rand_bits = _mm_setzero_si128();
+    if (rand_key) aes_expand(&c.rand_key, rand_key);
+    uint64_t *t = tables;
+    for (int64_t p = lo; p < hi; p++) {
+        const int64_t *op = ops + OP_WORDS * p;
+        int64_t kind = op[0], n = op[1];
+        const rows_t *r = rows + op[3];
+        if (kind == OP_AND) {
+            c.tables = t;
+            and_op(&c, r, op[4], n, (uint64_t)op[2]);
+            t += scheme == SCHEME_HALF_GATES ? 4 * n : 3 * n + (5 * n + 63) / 64;
+        } else if (kind <= OP_PUBLISH) {
+            linear_op(&c, kind, r, op[4], n, op[2], op[5]);
+        } else {
+            return -5;
+        }
+    }
+    return 0;
+}

@@ -1,0 +1,286 @@
+"""The native kernel is the numpy engine bit for bit, and runs only what it may.
+
+Fixed seeds, offsets and keys: the stream's bytes (a digest and every frame's length), the
+output zero-labels and the evaluator's active labels must be the numpy engine's, on
+circuits of every family, under both schemes, in one run and in lanes; the decoded
+outputs are the cleartext evaluation's. The library is built in a private folder and
+loaded only when its record matches (a planted one is never loaded); without a compiler
+the numpy engine runs and says why.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from snail_common.arith import catalog
+from snail_common.circuit import evaluate_bits, registry
+from snail_common.circuit.plan import plan_for
+from snail_common.gc import Evaluator, Garbler, active_input_labels, decode_output_labels
+from snail_common.gc import engine as engines
+from snail_common.gc.lanes import LaneEvaluator, LaneGarbler
+from snail_common.gc.native import build
+from snail_common.gc.native.program import build_program
+from snail_common.gc.native.run import NativeRun
+
+try:
+    engines.resolve("native")
+except build.NativeUnavailable as exc:  # pragma: no cover - where no compiler or AES-NI
+    pytest.skip(f"the native kernel cannot run here: {exc}", allow_module_level=True)
+
+SCHEMES = ("halfgates", "threehalves")
+CIRCUITS = [f"ops/f{op}-x1" for op in catalog.SERVED] + [
+    "loc/nx-sil-n4",  # the default: client solve, fixed-point per-point work
+    "loc/ne-sil-n4",  # client solve, float
+    "loc/lm-sil-ldlt-n4-x",  # the solve in the circuit
+]
+
+
+def secrets(tag: str, lanes: int = 1):
+    """Fixed seeds, offsets (lowest bit set) and keys."""
+    rng = np.random.default_rng(int(hashlib.sha256(tag.encode()).hexdigest()[:8], 16))
+    deltas = rng.integers(0, 2**63, (lanes, 2), dtype=np.uint64) | np.array([1, 0], np.uint64)
+    return [rng.bytes(16) for _ in range(lanes)], list(deltas), [rng.bytes(16)
+                                                               for _ in range(lanes)]
+
+
+def garble(schedule, engine, scheme, tag, block=8192, frame=1 << 20):
+    (seed,), (delta,), (key,) = secrets(tag)
+    g = Garbler(schedule, seed, delta, key, scheme=scheme, engine=engine, block_gates=block,
+                frame_bytes=frame)
+    frames = [bytes(f) for f in g.frames()]
+    return frames, g.output_zero_labels, seed, delta
+
+
+def evaluate(schedule, engine, labels, frames, cut=None):
+    ev = Evaluator(schedule, labels, engine=engine)
+    data = b"".join(frames)
+    step = cut or max(1, len(data))
+    for i in range(0, len(data), step):
+        ev.feed(data[i : i + step])
+    return ev.output_labels()
+
+
+def digest(frames):
+    return hashlib.sha256(b"".join(frames)).hexdigest(), [len(f) for f in frames]
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize("circuit_id", CIRCUITS)
+def test_native_is_numpy_bit_for_bit_on_every_family(circuit_id, scheme):
+    _, schedule = registry.compiled(circuit_id)
+    tag = f"{circuit_id}/{scheme}"
+    frames = {}
+    for engine in ("numpy", "native"):  # the reference first
+        frames[engine], zero, seed, delta = garble(schedule, engine, scheme, tag,
+                                                   frame=1 << 16)
+        if engine == "numpy":
+            want_zero = zero
+        else:
+            assert np.array_equal(zero, want_zero)
+    assert digest(frames["native"]) == digest(frames["numpy"])
+    bits = np.random.default_rng(7).integers(0, 2, schedule.n_inputs).astype(bool)
+    labels = active_input_labels(seed, delta, bits)
+    active = {e: evaluate(schedule, e, labels, frames["numpy"], cut=40_003)
+              for e in engines.ENGINES}
+    assert np.array_equal(active["native"], active["numpy"])
+    out = decode_output_labels(delta, want_zero, active["native"])
+    assert np.array_equal(out, evaluate_bits(schedule, bits[None])[0])
+
+
+def test_the_stream_digest_of_a_fixed_run_is_pinned():
+    """The same bytes as the numpy engine pinned them (test_gc_garbled pins its digest);
+    here small blocks and frames, so ops are cut across blocks and frames."""
+    _, schedule = registry.compiled("ops/fmul-x4")
+    for scheme in SCHEMES:
+        got = {e: digest(garble(schedule, e, scheme, "pin", block=37, frame=4096)[0])
+               for e in engines.ENGINES}
+        assert got["native"] == got["numpy"]
+        assert len(got["native"][1]) > 10
+
+
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_lanes_are_numpy_bit_for_bit(lanes):
+    _, schedule = registry.compiled("ops/fdiv-x2")
+    seeds, deltas, keys = secrets(f"lanes{lanes}", lanes)
+    streams = {}
+    for engine in engines.ENGINES:
+        g = LaneGarbler(schedule, seeds, deltas, keys, block_gates=100, frame_bytes=8192,
+                        engine=engine)
+        per_lane = [[] for _ in range(lanes)]
+        for frame in g.frames():
+            for lane, part in enumerate(frame):
+                per_lane[lane].append(bytes(part))
+        streams[engine] = (per_lane, g.output_zero_labels)
+    assert [digest(s) for s in streams["native"][0]] == [digest(s) for s in streams["numpy"][0]]
+    for a, b in zip(streams["native"][1], streams["numpy"][1]):
+        assert np.array_equal(a, b)
+    # a lane's stream is the single-run stream of its secrets
+    single = Garbler(schedule, seeds[0], deltas[0], keys[0], block_gates=100,
+                     frame_bytes=8192, engine="native")
+    assert b"".join(single.frames()) == b"".join(streams["native"][0][0])
+    rng = np.random.default_rng(lanes)
+    bits = rng.integers(0, 2, (lanes, schedule.n_inputs)).astype(bool)
+    labels = [active_input_labels(s, d, b) for s, d, b in zip(seeds, deltas, bits)]
+    outs = {}
+    for engine in engines.ENGINES:
+        ev = LaneEvaluator(schedule, labels, engine=engine)
+        if lanes > 1:
+            ev.drop(1)  # its session failed: the others go on
+        data = [b"".join(s) for s in streams["numpy"][0]]
+        for lane, stream in enumerate(data):
+            if lane != 1 or lanes == 1:
+                for i in range(0, len(stream), 5000):
+                    ev.feed(lane, stream[i : i + 5000])
+        outs[engine] = [ev.output_labels(k) for k in range(lanes) if k != 1 or lanes == 1]
+    for a, b in zip(outs["native"], outs["numpy"]):
+        assert np.array_equal(a, b)
+    want = evaluate_bits(schedule, bits)
+    for k, active in zip([k for k in range(lanes) if k != 1 or lanes == 1], outs["native"]):
+        zero = streams["native"][1][k]
+        assert np.array_equal(decode_output_labels(deltas[k], zero, active), want[k])
+
+
+def test_the_evaluator_waits_for_a_block_cut_by_a_read():
+    _, schedule = registry.compiled("ops/fadd-x2")
+    frames, zero, seed, delta = garble(schedule, "native", "halfgates", "cut", block=64)
+    bits = np.ones(schedule.n_inputs, bool)
+    labels = active_input_labels(seed, delta, bits)
+    ev = Evaluator(schedule, labels, engine="native")
+    data = b"".join(frames)
+    for i in range(len(data)):  # one byte at a time
+        assert not ev.done
+        ev.feed(data[i : i + 1])
+    assert ev.done
+    out = decode_output_labels(delta, zero, ev.output_labels())
+    assert np.array_equal(out, evaluate_bits(schedule, bits[None])[0])
+
+
+def test_every_index_is_checked_before_the_kernel_runs():
+    _, schedule = registry.compiled("ops/fadd-x1")
+    plan = plan_for(schedule)
+    build_program(plan, schedule.n_slots, 64)  # the real one passes
+    with pytest.raises(ValueError, match="leave"):
+        build_program(plan, schedule.n_slots - 1, 64)  # one slot short: some index is out
+    run = NativeRun(schedule, 64, 1, np.zeros((schedule.n_slots, 2), np.uint64), [bytes(16)])
+    end, words = run.fit(1 << 30)
+    assert end == run.program.n_ops and words == 4 * schedule.n_and
+    with pytest.raises(ValueError, match="tables"):
+        run.run(end, np.zeros((1, words - 1), np.uint64))  # tables a word short
+    with pytest.raises(ValueError, match="values"):
+        NativeRun(schedule, 64, 1, np.zeros((schedule.n_slots - 1, 2), np.uint64), [bytes(16)])
+    garbling = NativeRun(schedule, 64, 1, np.zeros((schedule.n_slots, 2), np.uint64),
+                         [bytes(16)], np.array([[1, 0]], np.uint64))
+    read_only = np.frombuffer(bytes(8 * words), np.uint64).reshape(1, -1)
+    with pytest.raises(ValueError, match="writable"):
+        garbling.run(end, read_only)
+
+
+# ---------------------------------------------------------------- building and loading
+
+
+def _compile_planted(tmp: Path, marker: Path) -> bytes:
+    """A shared library whose constructor writes ``marker``: loading it would show."""
+    src = tmp / "planted.c"
+    src.write_text('#include <stdio.h>\n__attribute__((constructor)) static void p(void) '
+                   f'{{ FILE *f = fopen("{marker}", "w"); if (f) fclose(f); }}\n'
+                   "int snail_cpu_ok(void) { return 1; }\n")
+    out = tmp / "planted.so"
+    subprocess.run([os.environ.get("CC") or "cc", "-shared", "-fPIC", "-o", out, src],
+                   check=True)
+    return out.read_bytes()
+
+
+def test_a_planted_library_is_never_loaded(tmp_path):
+    root = folder = tmp_path / "kernel"
+    _, how = build.build_and_load(root)
+    assert how.startswith("compiled")
+    assert folder.stat().st_mode & 0o777 == 0o700
+    _, how = build.build_and_load(root)
+    assert how.startswith("loaded")  # the record matched: no rebuild
+    record = next(folder.glob("*.json"))
+    library = folder / json.loads(record.read_text())["library"]
+    marker = tmp_path / "planted-ran"
+    library.write_bytes(_compile_planted(tmp_path, marker))  # swapped in place
+    lib, how = build.build_and_load(root)
+    assert how.startswith("compiled") and not marker.exists()
+    assert lib.snail_cpu_ok() == 1
+    # a record naming another source is stale: rebuilt, not loaded
+    text = record.read_text()
+    record.write_text(text.replace('"source_sha256": "', '"source_sha256": "0'))
+    _, how = build.build_and_load(root)
+    assert how.startswith("compiled")
+
+
+def test_without_a_compiler_a_library_built_for_this_source_serves(tmp_path, monkeypatch):
+    """An image's build step compiles the kernel; where it runs there is no compiler."""
+    folder = tmp_path / "kernel"
+    build.build_and_load(folder)
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    lib, how = build.build_and_load(folder)
+    assert how.startswith("prebuilt") and lib.snail_cpu_ok() == 1
+    record = next(folder.glob("*.json"))
+    library = folder / json.loads(record.read_text())["library"]
+    library.write_bytes(library.read_bytes() + b"planted")  # not what the record says
+    with pytest.raises(build.NativeUnavailable, match="no C compiler"):
+        build.build_and_load(folder)
+
+
+def test_a_folder_others_may_enter_is_refused(tmp_path):
+    folder = tmp_path / "kernel"
+    folder.mkdir(mode=0o755)
+    folder.chmod(0o755)
+    with pytest.raises(build.NativeUnavailable, match="mode 0700"):
+        build.build_and_load(folder)
+
+
+@pytest.fixture
+def no_compiler(monkeypatch, tmp_path):
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    monkeypatch.setenv(build.KERNEL_DIR_ENV, str(tmp_path / "kernel"))
+    build.reset()
+    yield
+    build.reset()
+
+
+def test_without_a_compiler_numpy_serves_and_says_why(no_compiler, monkeypatch):
+    monkeypatch.delenv(engines.ENGINE_ENV, raising=False)
+    status = engines.engine_status()
+    assert status["engine"] == "numpy" and status["requested"] == "auto"
+    assert "no C compiler" in status["reason"] and "no-such-cc" in status["reason"]
+    _, schedule = registry.compiled("ops/fadd-x1")
+    (seed,), (delta,), (key,) = secrets("fallback")
+    g = Garbler(schedule, seed, delta, key)
+    assert g.engine == "numpy"
+    bits = np.zeros(schedule.n_inputs, bool)
+    active = evaluate(schedule, None, active_input_labels(seed, delta, bits), list(g.frames()))
+    assert np.array_equal(decode_output_labels(delta, g.output_zero_labels, active),
+                          evaluate_bits(schedule, bits[None])[0])
+    with pytest.raises(build.NativeUnavailable, match="no C compiler"):
+        engines.resolve("native")  # asked for explicitly: an error, not a fallback
+    monkeypatch.setenv(engines.ENGINE_ENV, "native")
+    with pytest.raises(build.NativeUnavailable):
+        Garbler(schedule, seed, delta, key)
+    monkeypatch.setenv(engines.ENGINE_ENV, "numpy")
+    assert engines.engine_status() == {"engine": "numpy", "requested": "numpy"}
+    monkeypatch.setenv(engines.ENGINE_ENV, "fast")
+    with pytest.raises(ValueError, match="SNAIL_ENGINE"):
+        engines.resolve()
+
+
+def test_a_compiler_that_fails_is_a_reason_not_a_crash(monkeypatch, tmp_path):
+    fake = tmp_path / "cc"
+    fake.write_text("#!/bin/sh\n[ \"$1\" = --version ] && echo 'fake cc 1.0' && exit 0\n"
+                    "echo 'cannot compile' >&2; exit 1\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("CC", str(fake))
+    with pytest.raises(build.NativeUnavailable, match="cannot compile"):
+        build.build_and_load(tmp_path / "kernel")
+    assert shutil.which(str(fake))
