@@ -84,7 +84,8 @@ def serve(role: str, link: Link, stuck: bool = False) -> None:
     """Serve ``link`` on a fresh ``role`` daemon (``stuck``: its circuits never load)."""
     logger = logging.getLogger("snail.test_dispatch")
     daemon = {
-        "garbler": lambda: GarblerDaemon(Options(workers=1), logger, ("127.0.0.1", 1), None, ()),
+        "garbler": lambda: GarblerDaemon(Options(workers=1), logger, (("127.0.0.1", 1),), None,
+                                         ()),
         "evaluator": lambda: EvaluatorDaemon(Options(workers=1), logger),
         "mapowner": lambda: MapOwnerDaemon(Options(workers=1), logger, None,
                                            np.zeros((1, 1), np.uint8), None),
