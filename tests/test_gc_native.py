@@ -43,6 +43,20 @@ CIRCUITS = [f"ops/f{op}-x1" for op in catalog.SERVED] + [
 ]
 
 
+ISAS = [0, 1] if build.library().snail_isa(-1) else [0]  # AES-NI alone; VAES where it runs
+
+
+@pytest.fixture(params=ISAS, ids=lambda isa: ("aesni", "vaes")[isa])
+def isa(request):
+    """Each instruction set the kernel's AND ops may use on this CPU, the CPU's choice
+    restored after the test."""
+    lib = build.library()
+    was = lib.snail_isa(-1)
+    assert lib.snail_isa(request.param) == request.param
+    yield request.param
+    lib.snail_isa(was)
+
+
 def secrets(tag: str, lanes: int = 1):
     """Fixed seeds, offsets (lowest bit set) and keys."""
     rng = np.random.default_rng(int(hashlib.sha256(tag.encode()).hexdigest()[:8], 16))
@@ -74,7 +88,7 @@ def digest(frames):
 
 @pytest.mark.parametrize("scheme", SCHEMES)
 @pytest.mark.parametrize("circuit_id", CIRCUITS)
-def test_native_is_numpy_bit_for_bit_on_every_family(circuit_id, scheme):
+def test_native_is_numpy_bit_for_bit_on_every_family(circuit_id, scheme, isa):
     _, schedule = registry.compiled(circuit_id)
     tag = f"{circuit_id}/{scheme}"
     frames = {}
@@ -95,7 +109,7 @@ def test_native_is_numpy_bit_for_bit_on_every_family(circuit_id, scheme):
     assert np.array_equal(out, evaluate_bits(schedule, bits[None])[0])
 
 
-def test_the_stream_digest_of_a_fixed_run_is_pinned():
+def test_the_stream_digest_of_a_fixed_run_is_pinned(isa):
     """The same bytes as the numpy engine pinned them (test_gc_garbled pins its digest);
     here small blocks and frames, so ops are cut across blocks and frames."""
     _, schedule = registry.compiled("ops/fmul-x4")
@@ -107,7 +121,7 @@ def test_the_stream_digest_of_a_fixed_run_is_pinned():
 
 
 @pytest.mark.parametrize("lanes", [1, 3])
-def test_lanes_are_numpy_bit_for_bit(lanes):
+def test_lanes_are_numpy_bit_for_bit(lanes, isa):
     _, schedule = registry.compiled("ops/fdiv-x2")
     seeds, deltas, keys = secrets(f"lanes{lanes}", lanes)
     streams = {}

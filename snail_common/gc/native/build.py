@@ -160,6 +160,8 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     p, i64, c_int = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     lib.snail_cpu_ok.restype = c_int
     lib.snail_cpu_ok.argtypes = []
+    lib.snail_isa.restype = c_int
+    lib.snail_isa.argtypes = [c_int]
     lib.snail_run.restype = c_int
     lib.snail_run.argtypes = [c_int, c_int, p, i64, i64, p, p, i64, p, p, i64, p, p, p]
     return lib

@@ -27,6 +27,8 @@
 #include <string.h>
 
 #define TGT __attribute__((target("aes,sse4.1,ssse3")))
+/* the wide path: VAES hashes two blocks per instruction in 256-bit registers */
+#define TGTV __attribute__((target("aes,sse4.1,ssse3,avx,avx2,vaes")))
 #define INLINE static inline __attribute__((always_inline))
 
 enum { OP_AND = 0, OP_XOR = 1, OP_RAGGED = 2, OP_PUBLISH = 3 };
@@ -42,6 +44,10 @@ enum { MAX_LANES = 256 };
 #define TH_GARBLE_BATCH 2
 #define TH_EVAL_BATCH 3
 #define BATCH 4 /* the largest */
+/* VAES: 8 independent 256-bit AES blocks (16 hashes) in flight per batch */
+#define HG_GARBLE_BATCH_V 4
+#define HG_EVAL_BATCH_V 8
+#define BATCH_V 8
 
 typedef struct {
     int64_t kind, a, b;
@@ -52,6 +58,27 @@ int snail_cpu_ok(void) {
     unsigned a, b, c, d;
     if (!__get_cpuid(1, &a, &b, &c, &d)) return 0;
     return (c & bit_AES) && (c & bit_SSE4_1) && (c & bit_SSSE3);
+}
+
+/* 1 when the CPU has VAES and AVX2 and the OS saves the 256-bit registers. */
+static int cpu_vaes(void) {
+    unsigned a, b, c, d;
+    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & bit_OSXSAVE) || !(c & bit_AVX)) return 0;
+    unsigned lo, hi;
+    __asm__("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
+    if ((lo & 6) != 6 || __get_cpuid_max(0, 0) < 7) return 0;
+    __cpuid_count(7, 0, a, b, c, d);
+    return (b & bit_AVX2) && (c & (1u << 9)); /* leaf 7 ecx bit 9: VAES */
+}
+
+static int use_vaes = -1; /* -1: not decided yet (the CPU's answer on first use) */
+
+/* The instruction set the AND ops use: ask with want < 0; want 0 forces AES-NI alone
+ * (tests compare both paths), want 1 VAES where the CPU has it. Returns 1 for VAES. */
+int snail_isa(int want) {
+    if (want >= 0) use_vaes = want && cpu_vaes();
+    else if (use_vaes < 0) use_vaes = cpu_vaes();
+    return use_vaes;
 }
 
 INLINE int64_t row_at(const rows_t *r, int64_t i) {
@@ -232,6 +259,90 @@ TGT INLINE void hg_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t fir
     }
 }
 
+/* two 128-bit blocks as one 256-bit register, `lo` in the low half */
+TGTV INLINE __m256i pair(__m128i lo, __m128i hi) {
+    return _mm256_inserti128_si256(_mm256_castsi128_si256(lo), hi, 1);
+}
+
+TGTV INLINE __m128i high(__m256i v) { return _mm256_extracti128_si256(v, 1); }
+
+/* aes_n on n 256-bit registers (2n blocks), the round keys broadcast to both halves */
+TGTV INLINE void aes_v(const aes_key *ks, __m256i *x, int n) {
+    __m256i k = _mm256_broadcastsi128_si256(ks->rk[0]);
+#pragma GCC unroll 16
+    for (int i = 0; i < n; i++) x[i] = _mm256_xor_si256(x[i], k);
+#pragma GCC unroll 9
+    for (int r = 1; r < 10; r++) {
+        k = _mm256_broadcastsi128_si256(ks->rk[r]);
+#pragma GCC unroll 16
+        for (int i = 0; i < n; i++) x[i] = _mm256_aesenc_epi128(x[i], k);
+    }
+    k = _mm256_broadcastsi128_si256(ks->rk[10]);
+#pragma GCC unroll 16
+    for (int i = 0; i < n; i++) x[i] = _mm256_aesenclast_epi128(x[i], k);
+}
+
+/* hg_garble with VAES: a gate's four hashes in two registers, (A0, A1) and (B0, B1) */
+TGTV INLINE void hg_garble_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
+                             int64_t i, int j, int g, int64_t lane) {
+    __m128i a0[BATCH_V], b0[BATCH_V];
+    __m256i x[2 * BATCH_V], y[2 * BATCH_V];
+    __m128i d = c->delta[lane], sd = sigma(d);
+    int64_t w = 2 * lane;
+    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
+        uint64_t gate = first + (uint64_t)(i + k);
+        a0[k] = LD(ch->a[j + k] + w);
+        b0[k] = LD(ch->b[j + k] + w);
+        __m128i xa = _mm_xor_si128(sigma(a0[k]), tweak(2 * gate));
+        __m128i xb = _mm_xor_si128(sigma(b0[k]), tweak(2 * gate + 1));
+        y[2 * k] = x[2 * k] = pair(xa, _mm_xor_si128(xa, sd));
+        y[2 * k + 1] = x[2 * k + 1] = pair(xb, _mm_xor_si128(xb, sd));
+    }
+    aes_v(&c->keys[lane], y, 2 * g);
+    __m128i *t = (__m128i *)(c->tables + lane * c->lane_words);
+    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
+        __m128i ya0 = _mm256_castsi256_si128(y[2 * k]), ya1 = high(y[2 * k]);
+        __m128i yb0 = _mm256_castsi256_si128(y[2 * k + 1]), yb1 = high(y[2 * k + 1]);
+        __m128i ta = _mm_xor_si128(_mm_xor_si128(ya0, ya1), sd);
+        __m128i tb = _mm_xor_si128(_mm_xor_si128(yb0, yb1), sd);
+        __m128i pa = lsb_mask(a0[k]), pb = lsb_mask(b0[k]);
+        __m128i tg = _mm_xor_si128(ta, _mm_and_si128(pb, d));
+        __m128i ya = _mm_xor_si128(_mm_xor_si128(ya0, _mm256_castsi256_si128(x[2 * k])),
+                                   _mm_and_si128(pa, tg));
+        __m128i yb = _mm_xor_si128(_mm_xor_si128(yb0, _mm256_castsi256_si128(x[2 * k + 1])),
+                                   _mm_and_si128(pb, tb));
+        ST(t + i + k, tg);
+        ST(t + n + i + k, _mm_xor_si128(tb, a0[k]));
+        ST(ch->o[j + k] + w, _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_set_epi64x(1, 0)));
+    }
+}
+
+/* hg_evaluate with VAES: a gate's two hashes in one register, (A, B) */
+TGTV INLINE void hg_evaluate_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
+                               int64_t i, int j, int g, int64_t lane) {
+    __m128i a[BATCH_V], b[BATCH_V];
+    __m256i x[BATCH_V], y[BATCH_V];
+    int64_t w = 2 * lane;
+    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
+        uint64_t gate = first + (uint64_t)(i + k);
+        a[k] = LD(ch->a[j + k] + w);
+        b[k] = LD(ch->b[j + k] + w);
+        y[k] = x[k] = pair(_mm_xor_si128(sigma(a[k]), tweak(2 * gate)),
+                           _mm_xor_si128(sigma(b[k]), tweak(2 * gate + 1)));
+    }
+    aes_v(&c->keys[lane], y, g);
+    const __m128i *t = (const __m128i *)(c->tables + lane * c->lane_words);
+    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
+        __m256i h = _mm256_xor_si256(y[k], x[k]); /* (H(A), H(B)) */
+        __m128i sa = lsb_mask(a[k]), sb = lsb_mask(b[k]);
+        __m128i tg = LD(t + i + k), te = LD(t + n + i + k);
+        __m128i ya = _mm_xor_si128(_mm256_castsi256_si128(h), _mm_and_si128(sa, tg));
+        __m128i yb = _mm_xor_si128(high(h), _mm_and_si128(sb, te));
+        __m128i o = _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_and_si128(sb, a[k]));
+        ST(ch->o[j + k] + w, _mm_xor_si128(o, _mm_set_epi64x(1, 0)));
+    }
+}
+
 INLINE uint64_t lo64(__m128i v) { return (uint64_t)_mm_cvtsi128_si64(v); }
 
 TGT INLINE uint64_t hi64(__m128i v) { return (uint64_t)_mm_extract_epi64(v, 1); }
@@ -357,6 +468,7 @@ TGT INLINE void th_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t fir
     }
 }
 
+
 /* a chunk's gates in batches of `batch`, the rest one by one */
 #define BATCHED(batch, call)                                             \
     do {                                                                 \
@@ -365,8 +477,33 @@ TGT INLINE void th_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t fir
         for (; j < m; j++) call(i0 + j, j, 1);                           \
     } while (0)
 
+/* half-gates AND op with VAES (and_op's half-gates branch, twice the blocks per batch) */
+TGTV static void hg_and_op_v(ctx_t *c, const rows_t *r, int64_t dst, int64_t n,
+                             uint64_t first) {
+    chunk_t ch;
+    for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
+        int m = (int)(n - i0 < CHUNK ? n - i0 : CHUNK);
+        row_ptrs(&r[1], i0, m, c->values, c->width, ch.a);
+        row_ptrs(&r[2], i0, m, c->values, c->width, ch.b);
+        out_ptrs(c, &r[0], dst, i0, m, ch.o);
+        for (int64_t lane = 0; lane < c->lanes; lane++) {
+            if (c->mode == MODE_GARBLE) {
+#define HG_GV(i, j, g) hg_garble_v(c, &ch, n, first, i, j, g, lane)
+                BATCHED(HG_GARBLE_BATCH_V, HG_GV);
+            } else {
+#define HG_EV(i, j, g) hg_evaluate_v(c, &ch, n, first, i, j, g, lane)
+                BATCHED(HG_EVAL_BATCH_V, HG_EV);
+            }
+        }
+    }
+}
+
 TGT static void and_op(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, uint64_t first) {
     chunk_t ch;
+    if (c->scheme == SCHEME_HALF_GATES && snail_isa(-1)) {
+        hg_and_op_v(c, r, dst, n, first);
+        return;
+    }
     if (c->scheme == SCHEME_THREE_HALVES && c->mode == MODE_GARBLE)
         memset(c->tables + 3 * n, 0, 8 * (size_t)((5 * n + 63) / 64));
     for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
