@@ -47,6 +47,8 @@ RUN useradd --system --uid 10001 --user-group --no-create-home --home-dir /nonex
  && chown snail:snail /cache /tls /ca /out/garbler /out/evaluator /out/client
 COPY --from=build /opt/snail /opt/snail
 COPY --from=build --chown=10001:10001 /opt/snail-kernel /opt/snail-kernel
+# COPY leaves the folder 0755; the kernel's loader requires its folder private (0700)
+RUN chmod 0700 /opt/snail-kernel
 ENV PATH=/opt/snail/bin:$PATH \
     SNAIL_CACHE_DIR=/cache \
     SNAIL_KERNEL_DIR=/opt/snail-kernel \
