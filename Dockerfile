@@ -3,8 +3,11 @@
 #   docker build .                                      (python:3.11-slim from a registry)
 #   deploy/build-base && docker build --build-arg BASE=snail-base:bookworm .
 #                                                       (no registry: Debian packages only)
-# The project and its dependencies go into a venv (PEP 668) in a build stage; the final
-# stage copies only the venv: no compiler, no pip or apt caches, no sources.
+# The project and its dependencies go into a venv (PEP 668) in a build stage, with the
+# native garbling kernel compiled there (gcc from the base's apt); the final stage copies
+# only the venv and the kernel's folder: no compiler, no pip or apt caches, no sources.
+# The daemons load that library (its recorded hashes checked) and say "native" on their
+# start-up line and /health; where it cannot run they serve numpy and say why.
 # Offline: deploy/wheelhouse fills deploy/wheels/ and pip then installs only from there.
 ARG BASE=python:3.11-slim
 
@@ -19,12 +22,18 @@ COPY snail_garbler /src/snail_garbler
 COPY snail_evaluator /src/snail_evaluator
 COPY snail_mapd /src/snail_mapd
 COPY snail_bench /src/snail_bench
+RUN command -v cc >/dev/null || { apt-get update \
+      && apt-get install -y --no-install-recommends gcc libc6-dev \
+      && rm -rf /var/lib/apt/lists/*; }
 RUN set -e; python3 -m venv /opt/snail; \
     if ls /wheels/*.whl >/dev/null 2>&1; then \
         echo "installing from deploy/wheels only"; from="--no-index --find-links /wheels"; \
     else from=""; fi; \
     /opt/snail/bin/pip install --no-cache-dir --disable-pip-version-check $from /src; \
     /opt/snail/bin/python -m pip uninstall --yes --quiet pip setuptools
+# the kernel, built for the runtime user (the folder must be its own, mode 0700)
+RUN SNAIL_KERNEL_DIR=/opt/snail-kernel /opt/snail/bin/python -c \
+      "from snail_common.gc.native.build import build_and_load; print(build_and_load()[1])"
 
 FROM ${BASE}
 # tc (netem lab) is in iproute2: Debian's base has it, the official slim image does not
@@ -37,8 +46,12 @@ RUN useradd --system --uid 10001 --user-group --no-create-home --home-dir /nonex
  && mkdir -p /cache /tls /ca /out/garbler /out/evaluator /out/client \
  && chown snail:snail /cache /tls /ca /out/garbler /out/evaluator /out/client
 COPY --from=build /opt/snail /opt/snail
+COPY --from=build --chown=10001:10001 /opt/snail-kernel /opt/snail-kernel
+# COPY leaves the folder 0755; the kernel's loader requires its folder private (0700)
+RUN chmod 0700 /opt/snail-kernel
 ENV PATH=/opt/snail/bin:$PATH \
     SNAIL_CACHE_DIR=/cache \
+    SNAIL_KERNEL_DIR=/opt/snail-kernel \
     PYTHONUNBUFFERED=1
 USER snail
 WORKDIR /tmp

@@ -185,8 +185,13 @@ def circuit(algorithm: str, mode: str, points: int, solve: str | None, solver: s
                                   "run). Each engine's numbers are under 'engines'; the "
                                   "top-level fields are the engine the daemons would serve "
                                   "with ($SNAIL_ENGINE).")
+@click.option("--threads", type=click.IntRange(1, 2),
+              help="Threads the native kernel cuts wide steps across (default: "
+                   "$SNAIL_KERNEL_THREADS, else 1). With 2 the native figures use two "
+                   "cores; the report's kernel_threads says so.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def engine(schemes: tuple[str, ...], engine_names: tuple[str, ...], as_json: bool) -> None:
+def engine(schemes: tuple[str, ...], engine_names: tuple[str, ...], threads: int | None,
+           as_json: bool) -> None:
     """Garbling engine: AES rate, garble/evaluate AND gates per second on wide steps,
     per-step overhead on narrow ones, a two-process loopback rate, and the garbler ->
     evaluator bytes per AND gate, per scheme (with both: bytes_ratio, three-halves over
@@ -197,7 +202,7 @@ def engine(schemes: tuple[str, ...], engine_names: tuple[str, ...], as_json: boo
 
     try:
         report = engine_report(schemes=tuple(dict.fromkeys(schemes)) or tuple(SCHEMES),
-                               engine_names=engine_names or None)
+                               engine_names=engine_names or None, threads=threads)
     except NativeUnavailable as exc:
         raise click.BadParameter(f"native: {exc}", param_hint="--engine") from None
     _emit(report, as_json)

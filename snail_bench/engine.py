@@ -18,6 +18,8 @@ with both, ``bytes_ratio`` is three-halves' stream over half-gates'.
 Each engine asked for (default: the native kernel where it can run, and numpy) is measured
 the same way in the same run, its report under ``engines`` with its ``engine``; the
 top-level fields are those of the engine the daemons would serve with (``serving``).
+The native kernel cuts wide steps across ``kernel_threads`` threads (the report says how
+many: with 2, its figures use both cores of this machine); numpy runs on one.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from snail_common.gc import (
 )
 from snail_common.gc import engine as engines
 from snail_common.gc.aes import AesBatch, byte_view
-from snail_common.gc.native.run import program_for
+from snail_common.gc.native.run import THREADS_ENV, kernel_threads, program_for
 from snail_common.gc.stream import BLOCK_GATES, DEFAULT_SCHEME, HEADER, SCHEMES
 
 WIDE_LANES = 1 << 15  # AND steps of 32 Ki and 64 Ki gates
@@ -68,11 +70,29 @@ def available_engines() -> tuple[str, ...]:
 
 def engine_report(wide_layers: int = WIDE_LAYERS, deep_layers: int = DEEP_LAYERS,
                   schemes: tuple[str, ...] = tuple(SCHEMES),
-                  engine_names: tuple[str, ...] | None = None) -> dict:
+                  engine_names: tuple[str, ...] | None = None,
+                  threads: int | None = None) -> dict:
     """Measure AES, garble, evaluate, per-step overhead, end-to-end rates and stream bytes
     per AND of each scheme on each engine (one run); ``schemes`` is any iterable of names
-    (SCHEMES itself: every scheme). ValueError for an unknown scheme or engine;
+    (SCHEMES itself: every scheme); the native kernel on ``threads`` threads
+    (``kernel_threads``). ValueError for an unknown scheme or engine;
     NativeUnavailable when the native kernel is asked for and cannot run."""
+    threads = kernel_threads(threads)
+    was = os.environ.get(THREADS_ENV)
+    os.environ[THREADS_ENV] = str(threads)  # every run below, and the forked processes
+    try:
+        report = _engine_report(wide_layers, deep_layers, tuple(schemes), engine_names)
+    finally:
+        if was is None:
+            del os.environ[THREADS_ENV]
+        else:
+            os.environ[THREADS_ENV] = was
+    report["engine"]["kernel_threads"] = threads
+    return report
+
+
+def _engine_report(wide_layers: int, deep_layers: int, schemes: tuple[str, ...],
+                   engine_names: tuple[str, ...] | None) -> dict:
     schemes = tuple(schemes)
     if not schemes or any(s not in SCHEMES for s in schemes):
         raise ValueError(f"schemes must be some of {', '.join(SCHEMES)}, got {schemes}")

@@ -33,6 +33,7 @@ from typing import Any
 
 from snail_common.circuit.schedule import Schedule
 from snail_common.gc import Garbler, check_delta
+from snail_common.gc.engine import resolve as resolve_engine
 from snail_common.gc.stream import (
     DEFAULT_SCHEME,
     SCHEME_HALF_GATES,
@@ -114,7 +115,8 @@ class GarblerDaemon(Daemon):
         self.idle: dict[Address, list[Connection]] = {}  # pooled, per evaluator replica
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
         self.owners = OwnerInputs(client_ctx, options.handshake_timeout, map_owners)
-        self.rates = LinkRates()  # garbling rates and the server link, measured
+        # garbling rates (this engine's) and the server link, measured
+        self.rates = LinkRates.for_engine(resolve_engine())
         self.advised = False  # tcp_advice logged
 
     async def serve(self, conn: Connection) -> None:

@@ -1,6 +1,8 @@
 """``snail-bench engine`` runs end to end (garbler and evaluator processes included) and
 prints the documented shape; a small configuration keeps it a smoke test."""
 
+import os
+
 import pytest
 
 from snail_bench.engine import available_engines, engine_report
@@ -53,3 +55,17 @@ def test_one_scheme_at_the_top():
     assert "bytes_ratio" not in report
     with pytest.raises(ValueError, match="schemes"):
         engine_report(wide_layers=1, deep_layers=4, schemes=("quarter",))
+
+
+def test_the_kernel_threads_are_in_the_report(monkeypatch):
+    """A figure on two cores says so; the variable is restored; a bad count is refused."""
+    monkeypatch.delenv("SNAIL_KERNEL_THREADS", raising=False)
+    names = available_engines()[:1]
+    report = engine_report(wide_layers=1, deep_layers=4, schemes=("halfgates",),
+                           engine_names=names, threads=2)["engine"]
+    assert report["kernel_threads"] == 2 and all(report[k] > 0 for k in RATES)
+    assert "SNAIL_KERNEL_THREADS" not in os.environ
+    assert engine_report(wide_layers=1, deep_layers=4, schemes=("halfgates",),
+                         engine_names=names)["engine"]["kernel_threads"] == 1
+    with pytest.raises(ValueError, match=r"threads must be an integer in 1\.\.2"):
+        engine_report(wide_layers=1, deep_layers=4, threads=3)

@@ -28,7 +28,7 @@ from snail_common.gc import engine as engines
 from snail_common.gc.lanes import LaneEvaluator, LaneGarbler
 from snail_common.gc.native import build
 from snail_common.gc.native.program import build_program
-from snail_common.gc.native.run import NativeRun
+from snail_common.gc.native.run import NativeRun, kernel_threads
 
 try:
     engines.resolve("native")
@@ -41,6 +41,20 @@ CIRCUITS = [f"ops/f{op}-x1" for op in catalog.SERVED] + [
     "loc/ne-sil-n4",  # client solve, float
     "loc/lm-sil-ldlt-n4-x",  # the solve in the circuit
 ]
+
+
+ISAS = [0, 1] if build.library().snail_isa(-1) else [0]  # AES-NI alone; VAES where it runs
+
+
+@pytest.fixture(params=ISAS, ids=lambda isa: ("aesni", "vaes")[isa])
+def isa(request):
+    """Each instruction set the kernel's AND ops may use on this CPU, the CPU's choice
+    restored after the test."""
+    lib = build.library()
+    was = lib.snail_isa(-1)
+    assert lib.snail_isa(request.param) == request.param
+    yield request.param
+    lib.snail_isa(was)
 
 
 def secrets(tag: str, lanes: int = 1):
@@ -74,7 +88,7 @@ def digest(frames):
 
 @pytest.mark.parametrize("scheme", SCHEMES)
 @pytest.mark.parametrize("circuit_id", CIRCUITS)
-def test_native_is_numpy_bit_for_bit_on_every_family(circuit_id, scheme):
+def test_native_is_numpy_bit_for_bit_on_every_family(circuit_id, scheme, isa):
     _, schedule = registry.compiled(circuit_id)
     tag = f"{circuit_id}/{scheme}"
     frames = {}
@@ -95,7 +109,7 @@ def test_native_is_numpy_bit_for_bit_on_every_family(circuit_id, scheme):
     assert np.array_equal(out, evaluate_bits(schedule, bits[None])[0])
 
 
-def test_the_stream_digest_of_a_fixed_run_is_pinned():
+def test_the_stream_digest_of_a_fixed_run_is_pinned(isa):
     """The same bytes as the numpy engine pinned them (test_gc_garbled pins its digest);
     here small blocks and frames, so ops are cut across blocks and frames."""
     _, schedule = registry.compiled("ops/fmul-x4")
@@ -107,7 +121,7 @@ def test_the_stream_digest_of_a_fixed_run_is_pinned():
 
 
 @pytest.mark.parametrize("lanes", [1, 3])
-def test_lanes_are_numpy_bit_for_bit(lanes):
+def test_lanes_are_numpy_bit_for_bit(lanes, isa):
     _, schedule = registry.compiled("ops/fdiv-x2")
     seeds, deltas, keys = secrets(f"lanes{lanes}", lanes)
     streams = {}
@@ -284,3 +298,44 @@ def test_a_compiler_that_fails_is_a_reason_not_a_crash(monkeypatch, tmp_path):
     with pytest.raises(build.NativeUnavailable, match="cannot compile"):
         build.build_and_load(tmp_path / "kernel")
     assert shutil.which(str(fake))
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_ops_cut_across_two_threads_are_numpy_bit_for_bit(scheme, isa, monkeypatch):
+    """Wide steps (AND ops of 8192 gates, XOR ops of 12288 rows) cut into pieces that two
+    threads take in turn: the same stream and labels as numpy's."""
+    from snail_bench.engine import _layered_circuit
+    from snail_common.circuit import schedule_circuit
+    from snail_common.gc.native.program import OP_PARALLEL, PAR_MIN_AND
+
+    schedule = schedule_circuit(_layered_circuit(12288, 5))
+    program = build_program(plan_for(schedule), schedule.n_slots, 8192)
+    wide = program.ops[(program.ops[:, 0] & OP_PARALLEL > 0) & (program.ops[:, 1] >= 8192)]
+    assert len(wide) > 4 and (program.ops[:, 1] >= PAR_MIN_AND).any()
+    monkeypatch.setenv("SNAIL_KERNEL_THREADS", "2")
+    assert kernel_threads() == 2
+    frames, zero, seed, delta = garble(schedule, "native", scheme, "threads")
+    monkeypatch.delenv("SNAIL_KERNEL_THREADS")
+    want, want_zero, _, _ = garble(schedule, "numpy", scheme, "threads")
+    assert digest(frames) == digest(want) and np.array_equal(zero, want_zero)
+    bits = np.random.default_rng(3).integers(0, 2, schedule.n_inputs).astype(bool)
+    labels = active_input_labels(seed, delta, bits)
+    monkeypatch.setenv("SNAIL_KERNEL_THREADS", "2")
+    active = evaluate(schedule, "native", labels, frames, cut=300_001)
+    monkeypatch.delenv("SNAIL_KERNEL_THREADS")
+    assert np.array_equal(active, evaluate(schedule, "numpy", labels, frames))
+
+
+def test_a_direct_piece_that_reads_what_it_writes_stays_on_one_thread():
+    """Order matters in such a piece (a row may read a slot before a later row writes it):
+    it is never marked for cutting, while a piece writing other slots is."""
+    from snail_common.circuit.plan import AndPlan
+    from snail_common.gc.native.program import _rows_independent
+
+    n = 2048
+    apart = AndPlan(slice(2 * n, 3 * n, 1), slice(0, n, 1), slice(n, 2 * n, 1), 0, n, True)
+    reads_own = AndPlan(slice(n, 2 * n, 1), slice(0, n, 1), np.arange(n, 2 * n)[::-1].copy(),
+                        0, n, True)
+    assert _rows_independent(apart, 3 * n)
+    assert not _rows_independent(reads_own, 3 * n)
+    assert _rows_independent(reads_own._replace(direct=False), 3 * n)

@@ -94,3 +94,20 @@ def test_tcp_advice_only_for_a_real_network(monkeypatch):
     assert any("tcp_slow_start_after_idle" in a for a in advice)
     settings.update(tcp_wmem=[4096, 16384, 32 << 20], tcp_slow_start_after_idle=[0])
     assert tcpinfo.link_advice(125e6, 0.08) == []
+
+
+@pytest.mark.parametrize(("engine", "half_rate", "paper", "loopback"), [
+    ("numpy", 7.9e6, "halfgates", "halfgates"),  # the garbler's CPU bounds either link
+    ("native", 38e6, "threehalves", "halfgates"),  # 2.5 Gbit/s bounds half-gates' tables
+])
+def test_auto_follows_the_serving_engines_rates(engine, half_rate, paper, loopback):
+    """A garbler derives three-halves' rate with its own engine's share until it has run
+    both; the client's pick on the lab's paper link (2.5 Gbit/s) and on loopback then
+    follows the engine that garbles (rates: snail-bench engine on this machine)."""
+    rates = LinkRates.for_engine(engine)
+    rates.garbled(SCHEME_HALF_GATES, int(half_rate), 1.0)
+    report = rates.report()
+    share = report["and_per_s_threehalves"] / report["and_per_s_halfgates"]
+    assert share == pytest.approx({"numpy": 0.38, "native": 0.6}[engine], abs=0.01)
+    assert pick_scheme({**report, "link_mbit": 2_500.0}) == paper
+    assert pick_scheme({**report, "link_mbit": 40_000.0}) == loopback

@@ -67,21 +67,25 @@ def test_the_daemons_say_the_native_kernel_serves():
         engines.resolve("native")
     except engines.NativeUnavailable as exc:
         pytest.skip(f"the native kernel cannot run here: {exc}")
-    with embedded_services(env={engines.ENGINE_ENV: "native"}, log_level="info") as services:
+    env = {engines.ENGINE_ENV: "native", "SNAIL_KERNEL_THREADS": "2"}
+    with embedded_services(env=env, log_level="info") as services:
         for daemon in (services.garbler, services.evaluator):
             line = listening(daemon.log)
             assert line["engine"] == "native" and "engine_reason" not in line
-            assert health(services, daemon)["engine"] == "native"
+            assert line["engine_threads"] == 2
+            answer = health(services, daemon)
+            assert answer["engine"] == "native" and answer["engine_threads"] == 2
         run_once(services)
 
 
-@pytest.mark.parametrize(("setting", "env"), [
-    ("fast", {}),
-    ("native", {"CC": "/nonexistent/cc"}),
+@pytest.mark.parametrize(("setting", "env", "named"), [
+    ("fast", {}, "$SNAIL_ENGINE"),
+    ("native", {"CC": "/nonexistent/cc"}, "$SNAIL_ENGINE"),
+    ("auto", {"SNAIL_KERNEL_THREADS": "3"}, "$SNAIL_KERNEL_THREADS must be"),
 ])
-def test_an_engine_that_cannot_serve_stops_the_daemon(tmp_path, setting, env):
+def test_an_engine_that_cannot_serve_stops_the_daemon(tmp_path, setting, env, named):
     env = {**env, engines.ENGINE_ENV: setting, "SNAIL_KERNEL_DIR": str(tmp_path / "k")}
     tls_dir = make_certs(tmp_path / "tls")
     with pytest.raises(ServiceError, match="status 2") as err:
         start_daemon("evaluator", ["--tls-dir", str(tls_dir)], tmp_path / "e.log", env=env)
-    assert "$SNAIL_ENGINE" in str(err.value)
+    assert named in str(err.value)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 
 from .native.build import NativeUnavailable, library
+from .native.run import kernel_threads
 
 ENGINE_ENV = "SNAIL_ENGINE"
 ENGINES = ("native", "numpy")
@@ -45,7 +46,8 @@ def resolve(engine: str | None = None) -> str:
 
 def engine_status(engine: str | None = None) -> dict[str, str]:
     """{"engine": what serves, "requested": what was asked} plus, for a numpy fallback,
-    "reason": why the native kernel is not serving."""
+    "reason": why the native kernel is not serving, and for native, "threads": how many
+    a run's wide steps are cut across ($SNAIL_KERNEL_THREADS; ValueError if bad)."""
     choice = requested(engine)
     status = {"engine": "numpy", "requested": choice}
     if choice == "numpy":
@@ -58,4 +60,5 @@ def engine_status(engine: str | None = None) -> dict[str, str]:
         status["reason"] = str(exc)
         return status
     status["engine"] = "native"
+    status["threads"] = str(kernel_threads())
     return status

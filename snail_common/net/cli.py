@@ -139,12 +139,14 @@ def configure_caches(kwargs: dict[str, Any]) -> None:
 
 def choose_engine(prog: str) -> dict[str, str]:
     """The garbling engine this daemon serves with ($SNAIL_ENGINE, gc/engine.py), built
-    now (the native kernel compiles on first use); exit 2 naming the setting when it asks
-    for an engine that cannot run."""
+    now (the native kernel compiles on first use), and its threads ($SNAIL_KERNEL_THREADS);
+    exit 2 naming the setting when it asks for an engine that cannot run or is malformed."""
     try:
         return engine_status()
-    except (ValueError, NativeUnavailable) as exc:
+    except NativeUnavailable as exc:
         fail(2, f"${ENGINE_ENV}: {exc}", prog)
+    except ValueError as exc:  # it names its variable: $SNAIL_ENGINE or $SNAIL_KERNEL_THREADS
+        fail(2, f"${exc}", prog)
 
 
 def fail(code: int, message: str, prog: str | None = None) -> NoReturn:

@@ -22,9 +22,12 @@ from .tcpinfo import TcpInfo
 AUTO = "auto"  # the client's default: the scheme picked per session from the measurements
 CLIENT_SCHEMES = (AUTO, "halfgates", "threehalves")
 EWMA = 0.3  # weight of the newest sample
-# three-halves garbles at about this share of half-gates' rate on one core (README:
-# 3.0 vs 7.9 M AND/s on wide steps); used until the garbler has measured both
-THREE_HALVES_SHARE = 0.38
+# three-halves garbles at about this share of half-gates' rate on one core, per garbling
+# engine (numpy, README: 3.0 vs 7.9 M AND/s on wide steps; the native kernel, `snail-bench
+# engine` 2026-11-27 10:16, load 1.4: 23.1 vs 38.1 M AND/s, half-gates on VAES); used
+# until the garbler has measured both
+SHARE_BY_ENGINE = {"numpy": 0.38, "native": 0.6}
+THREE_HALVES_SHARE = SHARE_BY_ENGINE["numpy"]  # a client's guess: it cannot see the engine
 
 
 def bytes_per_and(scheme: int) -> float:
@@ -44,6 +47,12 @@ class LinkRates:
     and_per_s: dict[int, float] = field(default_factory=dict)
     link_rate: float | None = None
     rtt_s: float | None = None
+    share: float = THREE_HALVES_SHARE  # the serving engine's (SHARE_BY_ENGINE)
+
+    @classmethod
+    def for_engine(cls, engine: str) -> LinkRates:
+        """Estimates for a garbler serving with ``engine`` ("native" or "numpy")."""
+        return cls(share=SHARE_BY_ENGINE[engine])
 
     def garbled(self, scheme: int, n_and: int, cpu_s: float) -> None:
         """A session of ``n_and`` AND gates took ``cpu_s`` of garbling threads' CPU."""
@@ -70,9 +79,9 @@ class LinkRates:
         if scheme in self.and_per_s:
             return self.and_per_s[scheme]
         if scheme == SCHEME_THREE_HALVES and SCHEME_HALF_GATES in self.and_per_s:
-            return self.and_per_s[SCHEME_HALF_GATES] * THREE_HALVES_SHARE
+            return self.and_per_s[SCHEME_HALF_GATES] * self.share
         if scheme == SCHEME_HALF_GATES and SCHEME_THREE_HALVES in self.and_per_s:
-            return self.and_per_s[SCHEME_THREE_HALVES] / THREE_HALVES_SHARE
+            return self.and_per_s[SCHEME_THREE_HALVES] / self.share
         return None
 
     def report(self) -> dict[str, float]:

@@ -90,6 +90,8 @@ class Daemon(Listener):
         self.engine = {"engine": status["engine"]}
         if "reason" in status:
             self.engine["engine_reason"] = status["reason"]
+        if "threads" in status:  # the native kernel's threads per run
+            self.engine["engine_threads"] = int(status["threads"])
 
     def startup_fields(self) -> dict[str, Any]:
         return self.engine

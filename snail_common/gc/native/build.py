@@ -34,7 +34,8 @@ from snail_common.circuit.cache import cache_dir
 
 SOURCE = Path(__file__).with_name("kernel.c")
 CC_ENV = "CC"
-FLAGS = ("-O3", "-shared", "-fPIC", "-fno-strict-aliasing", "-fvisibility=default")
+FLAGS = ("-O3", "-shared", "-fPIC", "-pthread", "-fno-strict-aliasing",
+         "-fvisibility=default")
 FOLDER = "native-kernel"  # under the circuit cache
 KERNEL_DIR_ENV = "SNAIL_KERNEL_DIR"  # or here
 COMPILE_TIMEOUT_S = 120
@@ -160,8 +161,10 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     p, i64, c_int = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     lib.snail_cpu_ok.restype = c_int
     lib.snail_cpu_ok.argtypes = []
+    lib.snail_isa.restype = c_int
+    lib.snail_isa.argtypes = [c_int]
     lib.snail_run.restype = c_int
-    lib.snail_run.argtypes = [c_int, c_int, p, i64, i64, p, p, i64, p, p, i64, p, p, p]
+    lib.snail_run.argtypes = [c_int, c_int, p, i64, i64, p, p, i64, p, p, i64, p, p, p, c_int]
     return lib
 
 

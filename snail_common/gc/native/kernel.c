@@ -23,18 +23,29 @@
  */
 #include <cpuid.h>
 #include <immintrin.h>
+#include <limits.h>
+#include <linux/futex.h>
+#include <pthread.h>
+#include <sched.h>
+#include <stdatomic.h>
 #include <stdint.h>
 #include <string.h>
+#include <sys/syscall.h>
+#include <unistd.h>
 
 #define TGT __attribute__((target("aes,sse4.1,ssse3")))
+/* the wide path: VAES hashes two blocks per instruction in 256-bit registers */
+#define TGTV __attribute__((target("aes,sse4.1,ssse3,avx,avx2,vaes")))
 #define INLINE static inline __attribute__((always_inline))
 
 enum { OP_AND = 0, OP_XOR = 1, OP_RAGGED = 2, OP_PUBLISH = 3 };
+enum { OP_KIND = 0xff, OP_PARALLEL = 0x100 }; /* kind word: the kind | may be cut by rows */
 enum { R_SLICE = 0, R_I32 = 1, R_I64 = 2 };
 enum { OP_WORDS = 6 };
 enum { MODE_GARBLE = 0, MODE_EVALUATE = 1 };
 enum { SCHEME_HALF_GATES = 1, SCHEME_THREE_HALVES = 2 };
 enum { MAX_LANES = 256 };
+enum { MAX_THREADS = 2 };
 /* gates per AES batch: 8 independent AES blocks fill the pipeline (4 cycles latency, 2 per
  * cycle) and still fit the 16 vector registers */
 #define HG_GARBLE_BATCH 2
@@ -42,6 +53,10 @@ enum { MAX_LANES = 256 };
 #define TH_GARBLE_BATCH 2
 #define TH_EVAL_BATCH 3
 #define BATCH 4 /* the largest */
+/* VAES: 8 independent 256-bit AES blocks (16 hashes) in flight per batch */
+#define HG_GARBLE_BATCH_V 4
+#define HG_EVAL_BATCH_V 8
+#define BATCH_V 8
 
 typedef struct {
     int64_t kind, a, b;
@@ -52,6 +67,27 @@ int snail_cpu_ok(void) {
     unsigned a, b, c, d;
     if (!__get_cpuid(1, &a, &b, &c, &d)) return 0;
     return (c & bit_AES) && (c & bit_SSE4_1) && (c & bit_SSSE3);
+}
+
+/* 1 when the CPU has VAES and AVX2 and the OS saves the 256-bit registers. */
+static int cpu_vaes(void) {
+    unsigned a, b, c, d;
+    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & bit_OSXSAVE) || !(c & bit_AVX)) return 0;
+    unsigned lo, hi;
+    __asm__("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
+    if ((lo & 6) != 6 || __get_cpuid_max(0, 0) < 7) return 0;
+    __cpuid_count(7, 0, a, b, c, d);
+    return (b & bit_AVX2) && (c & (1u << 9)); /* leaf 7 ecx bit 9: VAES */
+}
+
+static int use_vaes = -1; /* -1: not decided yet (the CPU's answer on first use) */
+
+/* The instruction set the AND ops use: ask with want < 0; want 0 forces AES-NI alone
+ * (tests compare both paths), want 1 VAES where the CPU has it. Returns 1 for VAES. */
+int snail_isa(int want) {
+    if (want >= 0) use_vaes = want && cpu_vaes();
+    else if (use_vaes < 0) use_vaes = cpu_vaes();
+    return use_vaes;
 }
 
 INLINE int64_t row_at(const rows_t *r, int64_t i) {
@@ -136,6 +172,7 @@ typedef struct {
     aes_key rand_key; /* three-halves garbling: the garbler's random bits */
     int64_t rand_block;
     __m128i rand_bits;
+    int vaes; /* the AND ops' instruction set (snail_isa) */
 } ctx_t;
 
 /* addresses of rows i0 .. i0+m-1 of `r` in `values` (the descriptor's kind decided once) */
@@ -227,6 +264,90 @@ TGT INLINE void hg_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t fir
         __m128i tg = LD(t + i + k), te = LD(t + n + i + k);
         __m128i ya = _mm_xor_si128(_mm_xor_si128(y[k], x[k]), _mm_and_si128(sa, tg));
         __m128i yb = _mm_xor_si128(_mm_xor_si128(y[g + k], x[g + k]), _mm_and_si128(sb, te));
+        __m128i o = _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_and_si128(sb, a[k]));
+        ST(ch->o[j + k] + w, _mm_xor_si128(o, _mm_set_epi64x(1, 0)));
+    }
+}
+
+/* two 128-bit blocks as one 256-bit register, `lo` in the low half */
+TGTV INLINE __m256i pair(__m128i lo, __m128i hi) {
+    return _mm256_inserti128_si256(_mm256_castsi128_si256(lo), hi, 1);
+}
+
+TGTV INLINE __m128i high(__m256i v) { return _mm256_extracti128_si256(v, 1); }
+
+/* aes_n on n 256-bit registers (2n blocks), the round keys broadcast to both halves */
+TGTV INLINE void aes_v(const aes_key *ks, __m256i *x, int n) {
+    __m256i k = _mm256_broadcastsi128_si256(ks->rk[0]);
+#pragma GCC unroll 16
+    for (int i = 0; i < n; i++) x[i] = _mm256_xor_si256(x[i], k);
+#pragma GCC unroll 9
+    for (int r = 1; r < 10; r++) {
+        k = _mm256_broadcastsi128_si256(ks->rk[r]);
+#pragma GCC unroll 16
+        for (int i = 0; i < n; i++) x[i] = _mm256_aesenc_epi128(x[i], k);
+    }
+    k = _mm256_broadcastsi128_si256(ks->rk[10]);
+#pragma GCC unroll 16
+    for (int i = 0; i < n; i++) x[i] = _mm256_aesenclast_epi128(x[i], k);
+}
+
+/* hg_garble with VAES: a gate's four hashes in two registers, (A0, A1) and (B0, B1) */
+TGTV INLINE void hg_garble_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
+                             int64_t i, int j, int g, int64_t lane) {
+    __m128i a0[BATCH_V], b0[BATCH_V];
+    __m256i x[2 * BATCH_V], y[2 * BATCH_V];
+    __m128i d = c->delta[lane], sd = sigma(d);
+    int64_t w = 2 * lane;
+    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
+        uint64_t gate = first + (uint64_t)(i + k);
+        a0[k] = LD(ch->a[j + k] + w);
+        b0[k] = LD(ch->b[j + k] + w);
+        __m128i xa = _mm_xor_si128(sigma(a0[k]), tweak(2 * gate));
+        __m128i xb = _mm_xor_si128(sigma(b0[k]), tweak(2 * gate + 1));
+        y[2 * k] = x[2 * k] = pair(xa, _mm_xor_si128(xa, sd));
+        y[2 * k + 1] = x[2 * k + 1] = pair(xb, _mm_xor_si128(xb, sd));
+    }
+    aes_v(&c->keys[lane], y, 2 * g);
+    __m128i *t = (__m128i *)(c->tables + lane * c->lane_words);
+    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
+        __m128i ya0 = _mm256_castsi256_si128(y[2 * k]), ya1 = high(y[2 * k]);
+        __m128i yb0 = _mm256_castsi256_si128(y[2 * k + 1]), yb1 = high(y[2 * k + 1]);
+        __m128i ta = _mm_xor_si128(_mm_xor_si128(ya0, ya1), sd);
+        __m128i tb = _mm_xor_si128(_mm_xor_si128(yb0, yb1), sd);
+        __m128i pa = lsb_mask(a0[k]), pb = lsb_mask(b0[k]);
+        __m128i tg = _mm_xor_si128(ta, _mm_and_si128(pb, d));
+        __m128i ya = _mm_xor_si128(_mm_xor_si128(ya0, _mm256_castsi256_si128(x[2 * k])),
+                                   _mm_and_si128(pa, tg));
+        __m128i yb = _mm_xor_si128(_mm_xor_si128(yb0, _mm256_castsi256_si128(x[2 * k + 1])),
+                                   _mm_and_si128(pb, tb));
+        ST(t + i + k, tg);
+        ST(t + n + i + k, _mm_xor_si128(tb, a0[k]));
+        ST(ch->o[j + k] + w, _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_set_epi64x(1, 0)));
+    }
+}
+
+/* hg_evaluate with VAES: a gate's two hashes in one register, (A, B) */
+TGTV INLINE void hg_evaluate_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
+                               int64_t i, int j, int g, int64_t lane) {
+    __m128i a[BATCH_V], b[BATCH_V];
+    __m256i x[BATCH_V], y[BATCH_V];
+    int64_t w = 2 * lane;
+    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
+        uint64_t gate = first + (uint64_t)(i + k);
+        a[k] = LD(ch->a[j + k] + w);
+        b[k] = LD(ch->b[j + k] + w);
+        y[k] = x[k] = pair(_mm_xor_si128(sigma(a[k]), tweak(2 * gate)),
+                           _mm_xor_si128(sigma(b[k]), tweak(2 * gate + 1)));
+    }
+    aes_v(&c->keys[lane], y, g);
+    const __m128i *t = (const __m128i *)(c->tables + lane * c->lane_words);
+    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
+        __m256i h = _mm256_xor_si256(y[k], x[k]); /* (H(A), H(B)) */
+        __m128i sa = lsb_mask(a[k]), sb = lsb_mask(b[k]);
+        __m128i tg = LD(t + i + k), te = LD(t + n + i + k);
+        __m128i ya = _mm_xor_si128(_mm256_castsi256_si128(h), _mm_and_si128(sa, tg));
+        __m128i yb = _mm_xor_si128(high(h), _mm_and_si128(sb, te));
         __m128i o = _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_and_si128(sb, a[k]));
         ST(ch->o[j + k] + w, _mm_xor_si128(o, _mm_set_epi64x(1, 0)));
     }
@@ -357,6 +478,7 @@ TGT INLINE void th_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t fir
     }
 }
 
+
 /* a chunk's gates in batches of `batch`, the rest one by one */
 #define BATCHED(batch, call)                                             \
     do {                                                                 \
@@ -365,12 +487,39 @@ TGT INLINE void th_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t fir
         for (; j < m; j++) call(i0 + j, j, 1);                           \
     } while (0)
 
-TGT static void and_op(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, uint64_t first) {
+/* half-gates AND op with VAES (and_op's half-gates branch, twice the blocks per batch) */
+TGTV static void hg_and_op_v(ctx_t *c, const rows_t *r, int64_t dst, int64_t n,
+                             uint64_t first, int64_t r0, int64_t r1) {
     chunk_t ch;
+    for (int64_t i0 = r0; i0 < r1; i0 += CHUNK) {
+        int m = (int)(r1 - i0 < CHUNK ? r1 - i0 : CHUNK);
+        row_ptrs(&r[1], i0, m, c->values, c->width, ch.a);
+        row_ptrs(&r[2], i0, m, c->values, c->width, ch.b);
+        out_ptrs(c, &r[0], dst, i0, m, ch.o);
+        for (int64_t lane = 0; lane < c->lanes; lane++) {
+            if (c->mode == MODE_GARBLE) {
+#define HG_GV(i, j, g) hg_garble_v(c, &ch, n, first, i, j, g, lane)
+                BATCHED(HG_GARBLE_BATCH_V, HG_GV);
+            } else {
+#define HG_EV(i, j, g) hg_evaluate_v(c, &ch, n, first, i, j, g, lane)
+                BATCHED(HG_EVAL_BATCH_V, HG_EV);
+            }
+        }
+    }
+}
+
+/* gates r0 .. r1-1 of an AND op of n gates (three-halves: all of them, one thread) */
+TGT static void and_op(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, uint64_t first,
+                       int64_t r0, int64_t r1) {
+    chunk_t ch;
+    if (c->scheme == SCHEME_HALF_GATES && c->vaes) {
+        hg_and_op_v(c, r, dst, n, first, r0, r1);
+        return;
+    }
     if (c->scheme == SCHEME_THREE_HALVES && c->mode == MODE_GARBLE)
         memset(c->tables + 3 * n, 0, 8 * (size_t)((5 * n + 63) / 64));
-    for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
-        int m = (int)(n - i0 < CHUNK ? n - i0 : CHUNK);
+    for (int64_t i0 = r0; i0 < r1; i0 += CHUNK) {
+        int m = (int)(r1 - i0 < CHUNK ? r1 - i0 : CHUNK);
         row_ptrs(&r[1], i0, m, c->values, c->width, ch.a);
         row_ptrs(&r[2], i0, m, c->values, c->width, ch.b);
         out_ptrs(c, &r[0], dst, i0, m, ch.o);
@@ -400,11 +549,11 @@ TGT static void and_op(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, uint64
 
 /* out[i] = XOR over columns, chunk by chunk: a row's XOR in registers when the columns
  * are few, else column by column through the output row */
-TGT INLINE void xor_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t k,
-                         int64_t width) {
+TGT INLINE void xor_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t r0, int64_t r1,
+                         int64_t k, int64_t width) {
     uint64_t *o[CHUNK], *p[REG_COLUMNS][CHUNK];
-    for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
-        int64_t m = n - i0 < CHUNK ? n - i0 : CHUNK;
+    for (int64_t i0 = r0; i0 < r1; i0 += CHUNK) {
+        int64_t m = r1 - i0 < CHUNK ? r1 - i0 : CHUNK;
         out_ptrs(c, &r[0], dst, i0, m, o);
         if (k <= REG_COLUMNS) {
             for (int64_t col = 0; col < k; col++)
@@ -430,11 +579,11 @@ TGT INLINE void xor_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int6
     }
 }
 
-TGT INLINE void ragged_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t terms,
-                            int64_t width) {
+TGT INLINE void ragged_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t r0,
+                            int64_t r1, int64_t terms, int64_t width) {
     uint64_t *o[CHUNK];
-    for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
-        int64_t m = n - i0 < CHUNK ? n - i0 : CHUNK;
+    for (int64_t i0 = r0; i0 < r1; i0 += CHUNK) {
+        int64_t m = r1 - i0 < CHUNK ? r1 - i0 : CHUNK;
         out_ptrs(c, &r[0], dst, i0, m, o);
         for (int64_t q = 0; q < m; q++) {
             int64_t i = i0 + q;
@@ -449,23 +598,125 @@ TGT INLINE void ragged_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, i
     }
 }
 
+/* rows r0 .. r1-1 of a linear op of n rows */
 TGT static void linear_op(ctx_t *c, int64_t kind, const rows_t *r, int64_t dst, int64_t n,
-                          int64_t k, int64_t aux) {
+                          int64_t k, int64_t aux, int64_t r0, int64_t r1) {
     if (kind == OP_XOR) {
-        if (c->width == 2) xor_rows(c, r, dst, n, k, 2);
-        else xor_rows(c, r, dst, n, k, c->width);
+        if (c->width == 2) xor_rows(c, r, dst, r0, r1, k, 2);
+        else xor_rows(c, r, dst, r0, r1, k, c->width);
     } else if (kind == OP_RAGGED) {
-        if (c->width == 2) ragged_rows(c, r, dst, n, aux, 2);
-        else ragged_rows(c, r, dst, n, aux, c->width);
+        if (c->width == 2) ragged_rows(c, r, dst, n, r0, r1, aux, 2);
+        else ragged_rows(c, r, dst, n, r0, r1, aux, c->width);
     } else { /* PUBLISH */
         uint64_t *o[CHUNK];
-        for (int64_t i0 = 0; i0 < n; i0 += CHUNK) {
-            int64_t m = n - i0 < CHUNK ? n - i0 : CHUNK;
+        for (int64_t i0 = r0; i0 < r1; i0 += CHUNK) {
+            int64_t m = r1 - i0 < CHUNK ? r1 - i0 : CHUNK;
             row_ptrs(&r[0], i0, m, c->values, c->width, o);
             for (int64_t q = 0; q < m; q++)
                 memcpy(o[q], c->scratch + (dst + i0 + q) * c->width, 8 * (size_t)c->width);
         }
     }
+}
+
+/* ---------------------------------------------------------------- threads */
+
+/* Ops marked OP_PARALLEL (program.py: rows independent, none reads what another writes)
+ * and big enough are cut into pieces the threads take in turn (a thread that lost its
+ * core holds up at most one piece); the others run on thread 0 alone. Threads meet at a
+ * barrier before a cut op when thread 0 ran others since the last one, and after every
+ * cut op, so each op sees every earlier op's results. */
+#define PAR_MIN_AND 1024     /* gates: a cut costs a barrier, ~1 us */
+#define PAR_MIN_LINEAR 8192  /* rows */
+#define PIECE_AND 1024
+#define PIECE_LINEAR 4096
+#define SPIN_BEFORE_SLEEP 4000
+
+typedef struct {
+    atomic_int count, gen, sleepers;
+    int parties;
+    atomic_long *reset; /* set to 0 by the last to arrive, before the others go on */
+} barrier_t;
+
+static void barrier_wait(barrier_t *b) {
+    int gen = atomic_load(&b->gen);
+    if (atomic_fetch_add(&b->count, 1) == b->parties - 1) {
+        atomic_store(&b->count, 0);
+        atomic_store(b->reset, 0);
+        atomic_store(&b->gen, gen + 1);
+        if (atomic_load(&b->sleepers))
+            syscall(SYS_futex, &b->gen, FUTEX_WAKE_PRIVATE, INT_MAX, NULL, NULL, 0);
+        return;
+    }
+    for (int spin = 0; spin < SPIN_BEFORE_SLEEP; spin++) {
+        if (atomic_load_explicit(&b->gen, memory_order_acquire) != gen) return;
+        _mm_pause();
+    }
+    /* the other thread may wait for a core: sleep, so this one is free to run it */
+    atomic_fetch_add(&b->sleepers, 1);
+    while (atomic_load(&b->gen) == gen)
+        syscall(SYS_futex, &b->gen, FUTEX_WAIT_PRIVATE, gen, NULL, NULL, 0);
+    atomic_fetch_sub(&b->sleepers, 1);
+}
+
+typedef struct {
+    const int64_t *ops;
+    int64_t lo, hi;
+    const rows_t *rows;
+    uint64_t *tables;
+    int threads;
+    barrier_t bar;
+    atomic_long next; /* the next piece of the op being cut */
+    ctx_t *ctx[MAX_THREADS];
+} job_t;
+
+/* whether an op is cut across the threads */
+static int is_cut(const job_t *jb, const int64_t *op, int scheme) {
+    int64_t kind = op[0] & OP_KIND, n = op[1];
+    return jb->threads > 1 && (op[0] & OP_PARALLEL)
+           && (kind == OP_AND ? scheme == SCHEME_HALF_GATES && n >= PAR_MIN_AND
+                              : n >= PAR_MIN_LINEAR);
+}
+
+TGT INLINE void run_rows(ctx_t *c, const int64_t *op, const rows_t *r, uint64_t *t, int64_t r0,
+                         int64_t r1) {
+    int64_t kind = op[0] & OP_KIND, n = op[1];
+    if (kind == OP_AND) {
+        c->tables = t;
+        and_op(c, r, op[4], n, (uint64_t)op[2], r0, r1);
+    } else {
+        linear_op(c, kind, r, op[4], n, op[2], op[5], r0, r1);
+    }
+}
+
+TGT static void run_part(job_t *jb, int tid) {
+    ctx_t *c = jb->ctx[tid];
+    uint64_t *t = jb->tables;
+    int dirty = 0; /* thread 0 ran ops the others have not met after */
+    for (int64_t p = jb->lo; p < jb->hi; p++) {
+        const int64_t *op = jb->ops + OP_WORDS * p;
+        int64_t kind = op[0] & OP_KIND, n = op[1];
+        const rows_t *r = jb->rows + op[3];
+        if (is_cut(jb, op, c->scheme)) {
+            if (dirty) barrier_wait(&jb->bar);
+            int64_t piece = kind == OP_AND ? PIECE_AND : PIECE_LINEAR;
+            for (int64_t k; (k = atomic_fetch_add(&jb->next, 1)) * piece < n;)
+                run_rows(c, op, r, t, k * piece, (k + 1) * piece < n ? (k + 1) * piece : n);
+            barrier_wait(&jb->bar); /* resets `next` for the next cut op */
+            dirty = 0;
+        } else if (tid == 0) {
+            run_rows(c, op, r, t, 0, n);
+            dirty = 1;
+        } else {
+            dirty = 1; /* thread 0 ran it */
+        }
+        if (kind == OP_AND) t += c->scheme == SCHEME_HALF_GATES ? 4 * n : 3 * n + (5 * n + 63) / 64;
+    }
+}
+
+static void *worker(void *arg) {
+    job_t *jb = ((job_t **)arg)[0];
+    run_part(jb, (int)(intptr_t)((void **)arg)[1]);
+    return NULL;
 }
 
 /* ---------------------------------------------------------------- entry point */
@@ -474,45 +725,63 @@ TGT static void linear_op(ctx_t *c, int64_t kind, const rows_t *r, int64_t dst, 
  * words), garbling (mode 0: writes `tables`, reads `deltas`) or evaluating (mode 1:
  * reads `tables`). Tables of the ops follow each other from `tables`, lane k's at
  * tables + k * lane_words. `keys`: 16 bytes per lane; `rand_key`: three-halves garbling.
+ * `threads` (1 .. MAX_THREADS) share the ops marked parallel (see run_part).
  * Returns 0, or a negative number for an argument this file cannot run. */
 TGT int snail_run(int mode, int scheme, const int64_t *ops, int64_t lo, int64_t hi,
                   const rows_t *rows, uint64_t *values, int64_t lanes, uint64_t *scratch,
                   uint64_t *tables, int64_t lane_words, const uint8_t *keys,
-                  const uint64_t *deltas, const uint8_t *rand_key) {
+                  const uint64_t *deltas, const uint8_t *rand_key, int threads) {
     if (lanes < 1 || lanes > MAX_LANES) return -1;
     if (scheme != SCHEME_HALF_GATES && (scheme != SCHEME_THREE_HALVES || lanes != 1)) return -2;
     if (mode != MODE_GARBLE && mode != MODE_EVALUATE) return -3;
     if (mode == MODE_GARBLE && scheme == SCHEME_THREE_HALVES && !rand_key) return -4;
-    ctx_t c;
-    c.mode = mode;
-    c.scheme = scheme;
-    c.lanes = lanes;
-    c.width = 2 * lanes;
-    c.values = values;
-    c.scratch = scratch;
-    c.lane_words = lane_words;
+    if (threads < 1 || threads > MAX_THREADS) return -6;
+    for (int64_t p = lo; p < hi; p++)
+        if ((ops[OP_WORDS * p] & OP_KIND) > OP_PUBLISH) return -5;
+    ctx_t c[MAX_THREADS];
+    c[0].mode = mode;
+    c[0].scheme = scheme;
+    c[0].lanes = lanes;
+    c[0].width = 2 * lanes;
+    c[0].values = values;
+    c[0].scratch = scratch;
+    c[0].lane_words = lane_words;
+    c[0].vaes = snail_isa(-1);
     for (int64_t k = 0; k < lanes; k++) {
-        aes_expand(&c.keys[k], keys + 16 * k);
-        c.delta[k] = mode == MODE_GARBLE ? _mm_loadu_si128((const __m128i *)(deltas + 2 * k))
-                                         : _mm_setzero_si128();
+        aes_expand(&c[0].keys[k], keys + 16 * k);
+        c[0].delta[k] = mode == MODE_GARBLE
+                            ? _mm_loadu_si128((const __m128i *)(deltas + 2 * k))
+                            : _mm_setzero_si128();
     }
-    c.rand_block = -1;
-    c.rand_bits = _mm_setzero_si128();
-    if (rand_key) aes_expand(&c.rand_key, rand_key);
-    uint64_t *t = tables;
-    for (int64_t p = lo; p < hi; p++) {
-        const int64_t *op = ops + OP_WORDS * p;
-        int64_t kind = op[0], n = op[1];
-        const rows_t *r = rows + op[3];
-        if (kind == OP_AND) {
-            c.tables = t;
-            and_op(&c, r, op[4], n, (uint64_t)op[2]);
-            t += scheme == SCHEME_HALF_GATES ? 4 * n : 3 * n + (5 * n + 63) / 64;
-        } else if (kind <= OP_PUBLISH) {
-            linear_op(&c, kind, r, op[4], n, op[2], op[5]);
-        } else {
-            return -5;
-        }
+    c[0].rand_block = -1;
+    c[0].rand_bits = _mm_setzero_si128();
+    if (rand_key) aes_expand(&c[0].rand_key, rand_key);
+    job_t jb = {.ops = ops, .lo = lo, .hi = hi, .rows = rows, .tables = tables,
+                .threads = 1, .ctx = {&c[0]}};
+    /* threads only when some op is cut: a narrow range runs on this one alone */
+    for (int64_t p = lo; p < hi && threads > 1 && jb.threads == 1; p++) {
+        jb.threads = threads;
+        if (!is_cut(&jb, ops + OP_WORDS * p, scheme)) jb.threads = 1;
     }
+    atomic_init(&jb.bar.count, 0);
+    atomic_init(&jb.bar.gen, 0);
+    atomic_init(&jb.bar.sleepers, 0);
+    atomic_init(&jb.next, 0);
+    jb.bar.reset = &jb.next;
+    jb.bar.parties = jb.threads;
+    pthread_t th[MAX_THREADS];
+    void *args[MAX_THREADS][2];
+    _Static_assert(MAX_THREADS == 2, "a failed pthread_create below falls back to one");
+    int started = 1;
+    if (jb.threads == 2) {
+        c[1] = c[0];
+        jb.ctx[1] = &c[1];
+        args[1][0] = &jb;
+        args[1][1] = (void *)(intptr_t)1;
+        if (pthread_create(&th[1], NULL, worker, args[1]) == 0) started = 2;
+        else jb.threads = jb.bar.parties = 1; /* no thread to be had: this one runs all */
+    }
+    run_part(&jb, 0);
+    if (started == 2) pthread_join(th[1], NULL);
     return 0;
 }

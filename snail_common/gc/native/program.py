@@ -26,6 +26,8 @@ from snail_common.circuit.slots import Rows, length
 from ..stream import table_words
 
 OP_AND, OP_XOR, OP_RAGGED, OP_PUBLISH = 0, 1, 2, 3
+OP_KIND, OP_PARALLEL = 0xFF, 0x100  # kind word: the kind | rows may run on several threads
+PAR_MIN_AND = 1024  # kernel.c's: smaller AND ops are never cut, so never checked
 OP_WORDS = 6  # kind, n, first (gate number | columns), rows, dst, aux
 R_SLICE, R_I32, R_I64 = 0, 1, 2
 
@@ -121,8 +123,8 @@ def build_program(plan: Plan, n_slots: int, block: int) -> Program:
         else:
             raise ValueError(f"unknown plan step {type(step).__name__}")
     ops = np.array(b.ops, np.int64).reshape(-1, OP_WORDS)
-    and_gates = np.where(ops[:, 0] == OP_AND, ops[:, 1], 0) if len(ops) else np.zeros(0,
-                                                                                  np.int64)
+    and_gates = np.where(ops[:, 0] & OP_KIND == OP_AND, ops[:, 1], 0) if len(ops) else \
+        np.zeros(0, np.int64)
     return Program(ops, np.array(b.rows, np.int64).reshape(-1, 3), n_slots, b.scratch,
                    and_gates.astype(np.int64), tuple(b.keep))
 
@@ -132,17 +134,40 @@ def _and_piece(b: _Builder, step: AndPlan, block: int) -> None:
     for r in (step.out, step.a, step.b):  # the whole piece's indices, checked once
         b.check(r, n)
     dst = -1 if step.direct else 0  # a piece that waits computes into scratch rows 0 .. n-1
+    kind = OP_AND | (OP_PARALLEL if _rows_independent(step, b.n_slots) else 0)
     for k in range(0, n, block):
         m = min(block, n - k)
         at = len(b.rows)
         for r in (step.out, step.a, step.b):
             b.row(_part_view(r, k, m))
-        b.op(OP_AND, m, step.first + k, at, dst if dst < 0 else k)
+        b.op(kind, m, step.first + k, at, dst if dst < 0 else k)
     if not step.direct:
         b.scratch = max(b.scratch, n)
         at = len(b.rows)
         b.row(step.out)
-        b.op(OP_PUBLISH, n, 0, at, 0)
+        b.op(OP_PUBLISH | OP_PARALLEL, n, 0, at, 0)
+
+
+def _indices(rows: Rows, n: int) -> np.ndarray:
+    if isinstance(rows, slice):
+        step = 0 if rows.step is None else rows.step
+        return rows.start + step * np.arange(n) if step else np.full(n, rows.start)
+    return rows[:n]
+
+
+def _rows_independent(step: AndPlan, n_slots: int) -> bool:
+    """Whether the piece's gates may run in any order, on several threads: it writes
+    scratch rows (not direct), or no gate reads a slot that one of its gates writes (a
+    direct piece may read a slot before a later row writes it: order matters there).
+    Pieces too small to be cut are not checked (False)."""
+    if not step.direct:
+        return True
+    if step.n < PAR_MIN_AND:
+        return False
+    written = np.zeros(n_slots, bool)
+    written[_indices(step.out, step.n)] = True
+    return not (written[_indices(step.a, step.n)].any()
+                or written[_indices(step.b, step.n)].any())
 
 
 def _linear_step(b: _Builder, step: LinearPlan) -> None:
@@ -161,17 +186,17 @@ def _linear_step(b: _Builder, step: LinearPlan) -> None:
             for r, k, limit in ((terms, len(terms), None), (starts, n, len(terms))):
                 b.check(r, k, limit)
                 b.row(r)
-            b.op(OP_RAGGED, n, 0, at, -1 if step.direct else used, len(terms))
+            b.op(OP_RAGGED | OP_PARALLEL, n, 0, at, -1 if step.direct else used, len(terms))
         else:
             if not g.columns:
                 raise ValueError("a linear group has no columns")
             for col in g.columns:
                 b.check(col, n)
                 b.row(col)
-            b.op(OP_XOR, n, len(g.columns), at, -1 if step.direct else used)
+            b.op(OP_XOR | OP_PARALLEL, n, len(g.columns), at, -1 if step.direct else used)
         if not step.direct:
             pending.append((at, n, used))
             used += n
     for at, n, row in pending:
-        b.op(OP_PUBLISH, n, 0, at, row)
+        b.op(OP_PUBLISH | OP_PARALLEL, n, 0, at, row)
     b.scratch = max(b.scratch, used)

@@ -10,6 +10,7 @@ or writes outside them, whatever arrives from the wire.
 from __future__ import annotations
 
 import ctypes
+import os
 import threading
 
 import numpy as np
@@ -25,6 +26,8 @@ from .program import Program, build_program, ops_within
 U64 = np.uint64
 GARBLE, EVALUATE = 0, 1
 MAX_LANES = 256  # kernel.c's MAX_LANES
+MAX_THREADS = 2  # kernel.c's MAX_THREADS
+THREADS_ENV = "SNAIL_KERNEL_THREADS"
 BLOCK_SIZES_KEPT = 4  # programs kept per schedule (the block size comes from a stream header)
 _programs = per_object(lambda schedule: {})
 _lock = threading.Lock()
@@ -45,6 +48,20 @@ def program_for(schedule: Schedule, block: int) -> Program:
     return program
 
 
+def kernel_threads(threads: int | None = None) -> int:
+    """Threads a run may cut its wide ops across: ``threads``, else $SNAIL_KERNEL_THREADS,
+    else 1 (a daemon serves many sessions at once: one core each by default)."""
+    raw = threads if threads is not None else os.environ.get(THREADS_ENV) or 1
+    source = "threads" if threads is not None else THREADS_ENV
+    try:
+        value = int(raw)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= MAX_THREADS:
+        raise ValueError(f"{source} must be an integer in 1..{MAX_THREADS}, got {raw!r}")
+    return value
+
+
 def _pointer(arr: np.ndarray | None) -> int | None:
     return None if arr is None else arr.ctypes.data
 
@@ -52,12 +69,13 @@ def _pointer(arr: np.ndarray | None) -> int | None:
 class NativeRun:
     """Garbling (``deltas`` given) or evaluation of one run of ``schedule`` on ``values``
     (n_slots, 2L): L lanes, one AES key each; three-halves (one lane) garbling needs
-    ``random_key``."""
+    ``random_key``. Wide ops run on ``threads`` cores (``kernel_threads``)."""
 
     def __init__(self, schedule: Schedule, block: int, scheme: int, values: np.ndarray,
                  keys: list[bytes], deltas: np.ndarray | None = None,
-                 random_key: bytes | None = None) -> None:
+                 random_key: bytes | None = None, threads: int | None = None) -> None:
         self._lib = library()
+        self.threads = kernel_threads(threads)
         lanes = len(keys)
         if not 1 <= lanes <= MAX_LANES or any(len(k) != KEY_BYTES for k in keys):
             raise ValueError(f"need 1..{MAX_LANES} keys of {KEY_BYTES} bytes")
@@ -125,7 +143,7 @@ class NativeRun:
             self._values.ctypes.data, self._lanes, self._scratch.ctypes.data,
             tables.ctypes.data, tables.strides[0] // 8,
             ctypes.c_char_p(self._keys), _pointer(self._deltas),
-            None if self._random is None else ctypes.c_char_p(self._random))
+            None if self._random is None else ctypes.c_char_p(self._random), self.threads)
         if rc:
             raise RuntimeError(f"the native kernel refused its arguments (code {rc})")
         self.pos = end
