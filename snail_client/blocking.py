@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import signal
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +19,31 @@ from snail_common.net.linkrates import AUTO
 from .links import DEFAULT_LINK_TIMEOUT
 from .secure import DEFAULT_AHEAD, DEFAULT_BUSY_WAIT, DEFAULT_TIMEOUT, AsyncSecureRunner
 from .sessions import Address, FixedInputs, Invocation
+
+
+class _CtrlC:
+    """SIGINT as a flag and a cancelled task while the runner's loop runs, instead of a
+    KeyboardInterrupt raised inside whichever callback runs (uvloop delivers signals
+    there: a protocol took it for a lost connection, or the loop carried on). The flag is
+    set in the handler itself, so a signal that comes as the loop stops is not lost. Armed
+    only where Python itself turns SIGINT into KeyboardInterrupt (the main thread, SIGINT
+    not ignored or taken by the caller), so nothing else's handling changes."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, task: asyncio.Task) -> None:
+        self.seen = False
+        self._loop, self._task = loop, task
+        self._armed = (threading.current_thread() is threading.main_thread()
+                       and signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+        if self._armed:
+            signal.signal(signal.SIGINT, self._on_signal)
+
+    def _on_signal(self, *_: object) -> None:
+        self.seen = True
+        self._loop.call_soon_threadsafe(self._task.cancel)
+
+    def disarm(self) -> None:
+        if self._armed:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 class SecureRunner:
@@ -51,13 +78,26 @@ class SecureRunner:
         return self._runner.fixed(circuit_id)
 
     def _complete(self, coro: Any) -> Any:
-        """Run ``coro`` on this runner's loop. If it is interrupted (Ctrl-C), the tasks it
-        left are cancelled and finished first, so nothing dies half-way with the loop."""
+        """Run ``coro`` on this runner's loop. Ctrl-C cancels it through the loop (as
+        ``asyncio.run`` does) rather than raising inside whichever callback it lands in,
+        where a protocol took it for a lost connection or the loop carried on; the tasks it
+        left are cancelled and finished, then KeyboardInterrupt is raised here."""
+        task = self._loop.create_task(coro)
+        ctrl_c = _CtrlC(self._loop, task)
         try:
-            return self._loop.run_until_complete(coro)
+            result = self._loop.run_until_complete(task)
         except (KeyboardInterrupt, SystemExit):  # the runner is going: settle its tasks
             self._settle()
             raise
+        except BaseException:
+            if not ctrl_c.seen:
+                raise
+        finally:
+            ctrl_c.disarm()
+        if ctrl_c.seen:
+            self._settle()
+            raise KeyboardInterrupt
+        return result
 
     def _settle(self) -> None:
         pending = [t for t in asyncio.all_tasks(self._loop) if not t.done()]

@@ -48,10 +48,11 @@ class Daemon:
     address: str
     log: Path
 
-    def stop(self, timeout: float = STOP_TIMEOUT) -> int:
-        """SIGTERM, then SIGKILL after ``timeout``; returns the exit status."""
+    def stop(self, timeout: float = STOP_TIMEOUT, sig: int = signal.SIGTERM) -> int:
+        """``sig`` (SIGTERM drains, SIGINT ends the sessions at once), then SIGKILL after
+        ``timeout``; returns the exit status."""
         if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
+            self.process.send_signal(sig)
             try:
                 self.process.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -150,7 +151,13 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
                                                *common], root / "garbler.log", env=env)
             started.append(garbler)
             yield Services(garbler, evaluator, tls_dir, owners)
-        finally:
+        except BaseException:
+            # the client failed or was interrupted: nobody will finish the sessions left
+            # (garbled ahead, say), so they end at once instead of draining for --grace
+            for daemon in reversed(started):
+                daemon.stop(sig=signal.SIGINT)
+            raise
+        else:
             for daemon in reversed(started):
                 daemon.stop()
 

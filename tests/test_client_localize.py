@@ -17,9 +17,11 @@ from snail_client.blocking import SecureRunner
 from snail_client.embedded import embedded_services
 from snail_client.localize import GarbledBackend, Options, localize
 from snail_common.circuit import registry
+from snail_common.gc.stream import SCHEMES
 from snail_common.loc.backends import CircuitBackend, Float64Backend
 from snail_common.loc.problem import load_problem
 from snail_common.loc.reference import reprojection_rms
+from snail_common.net.linkrates import bytes_per_and
 
 ALL_EXAMPLES = sorted(path.name for path in EXAMPLES.glob("*.json"))
 
@@ -39,8 +41,12 @@ def test_garbled_pose_equals_cleartext_pose(runner, name):
     assert garbled["rvec"] == clear["rvec"] and garbled["tvec"] == clear["tvec"]
     assert garbled["cost"] == clear["cost"] and garbled["converged"]
     assert garbled["invocations"] == clear["invocations"] >= garbled["iterations"]
-    tables = garbled["traffic"]["garbler_to_evaluator"]
-    assert tables >= 32 * garbled["circuit"]["and"] * garbled["invocations"]
+    # every session's tables crossed the server link, at its own scheme's size per AND
+    # (--scheme auto picks each session's scheme from the measured link and engine)
+    schemes = garbled.get("schemes") or {garbled["scheme"]: garbled["invocations"]}
+    assert sum(schemes.values()) == garbled["invocations"]
+    floor = sum(bytes_per_and(SCHEMES[name]) * count for name, count in schemes.items())
+    assert garbled["traffic"]["garbler_to_evaluator"] >= floor * garbled["circuit"]["and"]
 
 
 def test_session_is_padded_to_min_invocations(runner):

@@ -4,6 +4,7 @@ an error to their peers instead of waiting out its grace period."""
 from __future__ import annotations
 
 import asyncio
+import os
 import signal
 import subprocess
 import sys
@@ -13,10 +14,12 @@ import pytest
 from daemons import sigint_default
 from shared_paths import EXAMPLES
 
+from snail_client.blocking import SecureRunner
 from snail_client.embedded import embedded_services
 from snail_client.links import ServiceError
 from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import registry
+from snail_common.net.tls import make_certs
 
 
 def _wait_for(proc: subprocess.Popen, timeout: float = 60) -> None:
@@ -68,3 +71,28 @@ def test_ctrl_c_ends_a_daemons_sessions_with_an_error(tmp_path, role):
         log = daemon.log.read_text()
         assert "Traceback" not in log
         assert log.strip().splitlines()[-1].startswith(f"snail-{role}: interrupted")
+
+
+def test_ctrl_c_inside_the_runners_loop_is_never_lost(tmp_path):
+    """uvloop raises KeyboardInterrupt inside whichever callback runs, and protocols take
+    any exception there for a lost connection (the fresh-clone CI saw the client carry on
+    after Ctrl-C, and a run end 'connection lost' with exit 1): the runner turns SIGINT
+    into a cancelled run and raises KeyboardInterrupt itself, even where the code it ran
+    swallowed everything."""
+    runner = SecureRunner("127.0.0.1:1", "127.0.0.1:2", make_certs(tmp_path / "tls"))
+
+    async def swallows_everything() -> str:
+        for _ in range(3):
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                await asyncio.sleep(0.05)
+            except BaseException:  # what a protocol callback does with it
+                pass
+        return "carried on"
+
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            runner._complete(swallows_everything())
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        runner._loop.close()
