@@ -90,9 +90,12 @@ def test_ctrl_c_inside_the_runners_loop_is_never_lost(tmp_path):
                 pass
         return "carried on"
 
+    # as in a terminal, whatever the job control of the shell that started pytest
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(KeyboardInterrupt):
             runner._complete(swallows_everything())
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
+        signal.signal(signal.SIGINT, before)
         runner._loop.close()
