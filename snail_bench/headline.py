@@ -17,11 +17,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+from snail_common.gc.engine import engine_status
+
 BEGIN, END = "<!-- headline:begin -->", "<!-- headline:end -->"
 
 
 def provenance() -> dict:
-    """The commit (with ``+dirty`` for uncommitted changes) and the machine of a run."""
+    """The commit (with ``+dirty`` for uncommitted changes), the machine and the garbling
+    engine of a run (the daemons it starts inherit the environment that chose it)."""
     repo = Path(__file__).resolve().parents[1]
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo,
@@ -32,7 +35,14 @@ def provenance() -> dict:
         commit += "+dirty" if dirty.strip() else ""
     except (OSError, subprocess.SubprocessError):
         commit = "unknown (not a git checkout)"
-    return {"commit": commit, "machine": _machine()}
+    return {"commit": commit, "machine": _machine(), "engine": _engine()}
+
+
+def _engine() -> str:
+    status = engine_status()
+    if status["engine"] == "native":
+        return f"native kernel, {status['threads']} thread(s) per run"
+    return f"numpy ({status.get('reason', 'asked for')})"
 
 
 def _machine() -> str:
@@ -121,7 +131,8 @@ def headline(results: dict, paper: dict) -> str:
     lines = [f"From one `snail-bench paper` run: {results.get('started', '?')} to "
              f"{results.get('finished', '?')}, commit {results.get('commit', 'unknown')}, "
              f"{results.get('machine', 'machine unknown')}; both servers and the client on it, "
-             "loopback TLS, the default circuits. Paper: EMP-toolkit on a desktop CPU.",
+             f"loopback TLS, the default circuits, {_engine_phrase(results)}. Paper: "
+             "EMP-toolkit on a desktop CPU.",
              ""]
     latency = results.get("latency", {})
     if latency.get("commit"):
@@ -131,6 +142,11 @@ def headline(results: dict, paper: dict) -> str:
     lines += [f"| {figure} | {ours} | {theirs} |" for figure, ours, theirs in rows(results,
                                                                                    paper)]
     return "\n".join(lines) + "\n"
+
+
+def _engine_phrase(results: dict) -> str:
+    engine = results.get("engine")
+    return f"the {engine} engine" if engine else "the numpy engine (before the native kernel)"
 
 
 def between_markers(text: str) -> str | None:

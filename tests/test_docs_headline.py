@@ -48,10 +48,13 @@ def test_a_quick_run_shows_what_it_measured():
     assert table[0][1:] == ("0.080 s", "-")
 
 
-def test_a_paper_run_records_its_commit_and_machine():
+def test_a_paper_run_records_its_commit_machine_and_engine(monkeypatch):
     found = provenance()
     assert found["commit"] and found["machine"]
     assert "cores" in found["machine"]
+    monkeypatch.setenv("SNAIL_ENGINE", "numpy")
+    assert provenance()["engine"] == "numpy (asked for)"
+    assert "the numpy (asked for) engine" in headline(provenance(), {})
 
 
 def test_the_update_rewrites_only_the_block(tmp_path: Path):
