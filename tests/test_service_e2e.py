@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from table_floor import per_and
 
 from snail_client.blocking import SecureRunner
 from snail_client.embedded import embedded_services, start_daemon
@@ -102,7 +103,7 @@ def test_traffic_and_time_are_measured(runner):
     np.testing.assert_array_equal(inv.outputs, cleartext("ops/fmul-x4", bits))
     t = inv.traffic
     assert set(t) == set(LINKS)
-    assert t["garbler_to_evaluator"] >= 32 * schedule.n_and
+    assert t["garbler_to_evaluator"] >= per_and(inv.scheme) * schedule.n_and
     assert t["client_to_evaluator"] >= 16 * (schedule.n_inputs + 2)
     assert t["evaluator_to_client"] >= 16 * circuit.n_outputs
     assert t["garbler_to_client"] >= 16 * circuit.n_outputs
@@ -131,7 +132,8 @@ def test_expected_runs_are_garbled_before_their_inputs_exist(services):
     runs, left = asyncio.run(scenario())
     for bits, inv in runs:
         np.testing.assert_array_equal(inv.outputs, cleartext("ops/fmul-x4", bits))
-    assert runs[0][1].garbled_ahead >= 32 * schedule.n_and  # all of it, before the labels
+    # all of it, before the labels
+    assert runs[0][1].garbled_ahead >= per_and(runs[0][1].scheme) * schedule.n_and
     assert not left  # none prepared beyond the three announced
 
 
