@@ -3,7 +3,10 @@ not the garbler's CPU, is the limit) and the kernel's TCP_INFO as the garbler re
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import socket
+import ssl
 import struct
 import threading
 
@@ -11,7 +14,9 @@ import pytest
 
 from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES
 from snail_common.net import tcpinfo
+from snail_common.net.conn import new_event_loop
 from snail_common.net.linkrates import LinkRates, bytes_per_and, pick_scheme
+from snail_common.net.tls import client_context, make_certs, server_context
 
 
 def test_auto_picks_three_halves_on_a_link_slower_than_the_garbler():
@@ -111,3 +116,34 @@ def test_auto_follows_the_serving_engines_rates(engine, half_rate, paper, loopba
     assert share == pytest.approx({"numpy": 0.38, "native": 0.6}[engine], abs=0.01)
     assert pick_scheme({**report, "link_mbit": 2_500.0}) == paper
     assert pick_scheme({**report, "link_mbit": 40_000.0}) == loopback
+
+
+def test_tcp_info_of_a_table_stream_that_has_gone_is_none(tmp_path):
+    """The garbler reads TCP_INFO after the evaluator's answer; an evaluator replica that
+    drained and exited right then left a TLS transport whose socket is None, and the
+    session that had succeeded was failed as ``internal`` (deploy/swarm-test's rolling
+    update, fresh-clone CI of 56fa563)."""
+    tls_dir = make_certs(tmp_path / "tls")
+
+    async def stream_then_gone():
+        server = await asyncio.start_server(lambda r, w: w.close(), "127.0.0.1", 0,
+                                            ssl=server_context(tls_dir, "evaluator"))
+        port = server.sockets[0].getsockname()[1]
+        _, writer = await asyncio.open_connection(
+            "127.0.0.1", port, ssl=client_context(tls_dir, "garbler"),
+            server_hostname="localhost")
+        live = tcpinfo.read(writer.transport.get_extra_info("socket"))
+        writer.close()
+        with contextlib.suppress(OSError, ssl.SSLError):
+            await writer.wait_closed()
+        server.close()
+        await server.wait_closed()
+        return live, writer.transport.get_extra_info("socket")
+
+    loop = new_event_loop()  # uvloop, as the daemons run
+    try:
+        live, gone = loop.run_until_complete(stream_then_gone())
+    finally:
+        loop.close()
+    assert live is not None and live.rtt_s >= 0
+    assert gone is None and tcpinfo.read(gone) is None

@@ -41,8 +41,12 @@ class TcpInfo:
     total_retrans: int
 
 
-def read(sock: socket.socket) -> TcpInfo | None:
-    """The connection's TCP_INFO, or None where the platform has none."""
+def read(sock: socket.socket | None) -> TcpInfo | None:
+    """The connection's TCP_INFO, or None where the platform has none or the connection
+    has gone (a closed transport's ``get_extra_info("socket")`` is None: an evaluator
+    replica that drained and exited right after answering failed the session here)."""
+    if sock is None:
+        return None
     try:
         raw = sock.getsockopt(socket.IPPROTO_TCP, TCP_INFO, _SIZE)
     except OSError:
