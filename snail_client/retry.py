@@ -5,7 +5,10 @@ reused), while ``--busy-wait`` lasts, when the failure says nothing about the re
 itself: a server at its limit (``busy``); and, where its role has another replica to
 turn to, one that is stopping (``draining``), a replica lost mid-run (a broken link, or
 ``peer_lost`` from the server that lost its peer), a timeout. Tampering, a bad request,
-a circuit a server does not have, a forbidden address are final. The replica at fault
+a circuit a server does not have, a forbidden address are final, except an evaluator
+replica the garbler cannot find among its operator's names where the client knows others
+(in a rolling update, a garbler replica started after that evaluator replica left DNS
+while it drained refuses it: another replica serves). The replica at fault
 is shunned for a while (replicas.ReplicaSet), so the retry lands elsewhere when another
 replica answers. A result is counted once, when it decodes; a failed attempt counts
 nothing but a retry.
@@ -15,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from snail_common.net.errors import BUSY, PEER_LOST, RETRYABLE
+from snail_common.net.errors import BUSY, FORBIDDEN, PEER_LOST, RETRYABLE
 
 from .links import ServiceError
 from .replicas import ReplicaSet
@@ -29,9 +32,18 @@ def retryable(exc: ServiceError, session: Prepared | None,
     replica to turn to (with a single one, the failure is reported as it happened)."""
     if exc.code == BUSY:
         return True
+    if _evaluator_unknown_to_garbler(exc, session):
+        return sets["evaluator"].several()
     lost = exc.code in RETRYABLE or (
         exc.code is None and exc.link is not None and not exc.link.alive)
     return lost and any(s.several() for s in _at_fault(exc, session, sets))
+
+
+def _evaluator_unknown_to_garbler(exc: ServiceError, session: Prepared | None) -> bool:
+    """The garbler refused, without dialling it, the evaluator replica this session
+    named (its ``field 'evaluator'`` refusal)."""
+    return (exc.code == FORBIDDEN and session is not None and exc.link is session.garbler
+            and "field 'evaluator'" in str(exc))
 
 
 def _at_fault(exc: ServiceError, session: Prepared | None,
@@ -45,8 +57,11 @@ def _at_fault(exc: ServiceError, session: Prepared | None,
 
 def blame(exc: ServiceError, session: Prepared | None, sets: Iterable[ReplicaSet]) -> None:
     """Shun the replicas this failure points at: a dead link's, the one that refused or
-    failed the session, and the evaluator a garbler says it lost."""
-    suspects = [exc.link] if exc.link is not None else []
+    failed the session, and the evaluator a garbler says it lost or does not know."""
+    if _evaluator_unknown_to_garbler(exc, session):
+        suspects = [session.evaluator]  # the garbler is fine: it only did not know it
+    else:
+        suspects = [exc.link] if exc.link is not None else []
     if session is not None:
         suspects += [link for link in (session.garbler, session.evaluator) if not link.alive]
         if exc.code == PEER_LOST and exc.link is session.garbler:

@@ -122,3 +122,39 @@ def test_a_replica_lost_mid_run_is_retried_on_another_with_the_same_pose(servers
     assert result["retries"] >= 1 and again["retries"] == 0
     assert result["invocations"] == 20  # padded as asked: no invocation lost or doubled
     assert _ok_sessions(killed[0]) >= 1  # both replicas had served sessions
+
+
+def test_an_evaluator_replica_the_garbler_does_not_know_is_passed_over(tmp_path,
+                                                                        monkeypatch):
+    """In a rolling update a garbler replica started after an evaluator replica left DNS
+    (draining) refuses it as ``forbidden`` (it cannot tell it from an address it must not
+    dial); a client that knows other evaluator replicas runs the session on one of them
+    (deploy/swarm-test lost a localization to it from a fresh clone). Here the garbler is
+    allowed evaluator 0 only, and the client's name resolves to both."""
+    tls_dir = make_certs(tmp_path / "tls", hosts=[NAME])
+    common = ["--tls-dir", str(tls_dir), "--log-level", "info"]
+    evaluators = [start_daemon("evaluator", common, tmp_path / f"evaluator{i}.log")
+                  for i in range(2)]
+    garbler = start_daemon("garbler", ["--evaluator", evaluators[0].address, *common],
+                           tmp_path / "garbler.log")
+    try:
+        addresses = [parse_addr(e.address) for e in evaluators]
+
+        async def both(host, port):
+            return list(addresses) if host == NAME else [(host, port)]
+
+        monkeypatch.setattr(replicas, "resolve", both)
+        problem = load_problem(EXAMPLES / "synthetic_n6.json")
+        clear = localize(problem, Options(backend="cleartext"), CircuitBackend())
+        with SecureRunner(garbler.address, f"{NAME}:{addresses[1][1]}", tls_dir,
+                          timeout=60, busy_wait=60) as runner:
+            result = localize(problem, Options(backend="garbled", min_invocations=10),
+                              GarbledBackend(runner))
+        for key in ("rvec", "tvec", "iterations", "status", "cost"):
+            assert result[key] == clear[key], key
+        assert result["retries"] >= 1 and result["invocations"] == 10
+        assert _settled_ok_sessions(evaluators[0]) == 10
+        assert _ok_sessions(evaluators[1]) == 0
+    finally:
+        for daemon in (garbler, *evaluators):
+            daemon.stop()
