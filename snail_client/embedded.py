@@ -137,6 +137,7 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
         tls_dir = make_certs(root / "tls")
         common = ["--tls-dir", str(tls_dir), "--log-level", log_level, *extra_args]
         started: list[Daemon] = []
+        stop_with = signal.SIGTERM  # drain: the client is done with every session
         try:
             evaluator = start_daemon("evaluator", common, root / "evaluator.log", env=env)
             started.append(evaluator)
@@ -154,12 +155,11 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
         except BaseException:
             # the client failed or was interrupted: nobody will finish the sessions left
             # (garbled ahead, say), so they end at once instead of draining for --grace
-            for daemon in reversed(started):
-                daemon.stop(sig=signal.SIGINT)
+            stop_with = signal.SIGINT
             raise
-        else:
+        finally:
             for daemon in reversed(started):
-                daemon.stop()
+                daemon.stop(sig=stop_with)
 
 
 def check_addresses(garbler: str | None, evaluator: str | None,
