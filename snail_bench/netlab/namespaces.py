@@ -51,6 +51,25 @@ PROBE_PORT = 5201  # the probe server's port (inside the lab's fresh namespaces)
 _serial = itertools.count()
 
 
+def process_cpu_s(pid: int) -> float:
+    """CPU seconds ``pid`` has used: the scheduler's nanosecond sum over its threads
+    where the kernel shows it, else user plus system time from /proc/PID/stat, which
+    counts in clock ticks (10 ms: a short control run of the native forwarder reads 0)."""
+    try:
+        total = 0.0
+        for sched in Path(f"/proc/{pid}/task").glob("*/sched"):
+            for line in sched.read_text().splitlines():
+                if line.startswith("se.sum_exec_runtime"):
+                    total += float(line.split(":")[1]) / 1000  # milliseconds
+        if total > 0:
+            return total
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1]
+    except (OSError, ValueError):
+        return 0.0
+    user, system = fields.split()[11:13]
+    return (int(user) + int(system)) / os.sysconf("SC_CLK_TCK")
+
+
 class LabUnavailable(Exception):
     """This process cannot build namespaces (not root, no CAP_NET_ADMIN, no ``ip``)."""
 
@@ -307,15 +326,10 @@ class Lab:
         return self._wire is not None
 
     def wire_cpu_s(self) -> float:
-        """CPU seconds (user and system) the running forwarder has used (0: none runs)."""
+        """CPU seconds the running forwarder has used (0: none runs)."""
         if self._wire is None:
             return 0.0
-        try:
-            fields = Path(f"/proc/{self._wire.pid}/stat").read_text().rsplit(")", 1)[1]
-        except OSError:
-            return 0.0
-        user, system = fields.split()[11:13]
-        return (int(user) + int(system)) / os.sysconf("SC_CLK_TCK")
+        return process_cpu_s(self._wire.pid)
 
     def qdiscs(self, role: str) -> str:
         """``tc qdisc show`` inside ``role``'s namespace."""
