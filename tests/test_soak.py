@@ -13,14 +13,13 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from snail_bench.soak import (
+from snail_bench.soak import check_frame, failure_kind
+from snail_bench.soak_report import (
     Plan,
     Sample,
     Tally,
     bucket,
-    check_frame,
     daemon_log,
-    failure_kind,
     flat,
     minute_of,
     per_minute_max,
