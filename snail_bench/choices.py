@@ -4,6 +4,8 @@ a client)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import click
 
 from snail_common.pnp.spec import Spec
@@ -15,6 +17,29 @@ ARITH = click.option("--arith", type=click.Choice(["fixed", "float"]),
                      help="Per-point arithmetic of a SIL circuit: fixed (default; integer "
                           "Jacobian and sums, float32 residuals and cost) or float (narrow "
                           "floats). DO and SVD circuits are float.")
+
+_CIRCUIT_OPTIONS = (
+    click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm",
+                 show_default=True, help="Levenberg-Marquardt (damped) or Gauss-Newton."),
+    click.option("--mode", type=click.Choice(["sil", "do"]), default="sil", show_default=True,
+                 help="sil: one iteration per circuit; do: the data-oblivious 20-iteration "
+                      "baseline."),
+    click.option("--solve", type=click.Choice(["client", "circuit"]),
+                 help="client (default for sil): the circuit returns the normal equations "
+                      "and the client solves; circuit (forced for do): the paper's "
+                      "in-circuit solve."),
+    click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt",
+                 show_default=True,
+                 help="Linear solver for the 6x6 step inside the circuit (--solve circuit)."),
+)
+
+
+def circuit_options(command: Callable) -> Callable:
+    """--algorithm, --mode, --solve and --solver of circuit and service: the choices
+    ``spec`` turns into a circuit."""
+    for option in reversed(_CIRCUIT_OPTIONS):
+        command = option(command)
+    return command
 
 
 def spec(algorithm: str, mode: str, solve: str | None, solver: str, points: int,

@@ -14,7 +14,7 @@ from snail_common.circuit import evaluate_bits, schedule_circuit
 from snail_common.circuit.bristol import BristolError, load_bristol
 from snail_common.gc.stream import SCHEMES
 
-from .choices import ARITH
+from .choices import ARITH, circuit_options
 from .choices import spec as _spec
 
 
@@ -116,17 +116,9 @@ def ops(as_json: bool) -> None:
 
 
 @click.command()
-@click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm", show_default=True,
-              help="Levenberg-Marquardt (damped) or Gauss-Newton.")
-@click.option("--mode", type=click.Choice(["sil", "do"]), default="sil", show_default=True,
-              help="sil: one iteration per circuit; do: the data-oblivious 20-iteration baseline.")
+@circuit_options
 @click.option("--points", type=click.IntRange(4, 4096), default=6, show_default=True,
               help="Number of point correspondences the circuit takes.")
-@click.option("--solve", type=click.Choice(["client", "circuit"]),
-              help="client (default for sil): the circuit returns the normal equations and "
-                   "the client solves; circuit (forced for do): the paper's in-circuit solve.")
-@click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt", show_default=True,
-              help="Linear solver for the 6x6 step inside the circuit (--solve circuit).")
 @ARITH
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def circuit(algorithm: str, mode: str, points: int, solve: str | None, solver: str,

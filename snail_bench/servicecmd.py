@@ -12,20 +12,12 @@ import click
 
 from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
 
-from .choices import ARITH, SERVICE_POINTS
+from .choices import ARITH, SERVICE_POINTS, circuit_options
 from .choices import spec as _spec
 
 
 @click.command()
-@click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm", show_default=True,
-              help="Levenberg-Marquardt (damped) or Gauss-Newton.")
-@click.option("--mode", type=click.Choice(["sil", "do"]), default="sil", show_default=True,
-              help="sil: one iteration per circuit; do: the data-oblivious 20-iteration baseline.")
-@click.option("--solve", type=click.Choice(["client", "circuit"]),
-              help="client (default for sil): the circuit returns the normal equations and "
-                   "the client solves; circuit (forced for do): the paper's in-circuit solve.")
-@click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt", show_default=True,
-              help="Linear solver for the 6x6 step inside the circuit (--solve circuit).")
+@circuit_options
 @click.option("--points", type=click.IntRange(4, 4096), multiple=True, metavar="N",
               help="Circuit size; repeat for several (default: 6 and 12; 64 and 256 take "
                    "minutes and gigabytes, only when asked).")
