@@ -41,7 +41,8 @@ def provenance() -> dict:
 def _engine() -> str:
     status = engine_status()
     if status["engine"] == "native":
-        return f"native kernel, {status['threads']} thread(s) per run"
+        threads = status["threads"]
+        return f"native kernel, {threads} thread{'' if threads == 1 else 's'} per run"
     return f"numpy ({status.get('reason', 'asked for')})"
 
 
@@ -146,7 +147,7 @@ def headline(results: dict, paper: dict) -> str:
 
 def _engine_phrase(results: dict) -> str:
     engine = results.get("engine")
-    return f"the {engine} engine" if engine else "the numpy engine (before the native kernel)"
+    return f"engine: {engine}" if engine else "engine: numpy (before the native kernel)"
 
 
 def between_markers(text: str) -> str | None:

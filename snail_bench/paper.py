@@ -51,6 +51,10 @@ PAPER_RESULTS = Path(__file__).resolve().parents[2] / "shared" / "paper_results.
 SERVER_RATE_MBIT = 2500.0  # the paper's link between its two servers
 MIN_INVOCATIONS = 20  # a SIL localization's privacy floor (snail-client's default)
 LATENCY_DELAYS_MS = (0.0, 5.0, 20.0, 50.0)
+# invocations per circuit in the lab's sweeps, as many as a localization makes: the client
+# sizes its garble-ahead from its first invocations, so five warm runs measure the
+# pipeline filling (n = 6 at 5 ms: 2.0x unshaped at 5 runs, 0.83x at 20, 2026-11-27)
+LAB_REPEAT = MIN_INVOCATIONS
 PROFILE_REPEAT = 3  # localizations per network profile and n, after one to warm up
 MICRO_OPS = 10_000  # the paper's micro-benchmark size
 
@@ -72,7 +76,8 @@ class Plan:
         about 100 s and runs in about 20 s; a SIL circuit costs ~0.05 s per point to build
         and ~(0.15 + 0.005 n) s per run."""
         runs = len(self.algorithms) * (MIN_INVOCATIONS * len(self.totals_points)
-                                       + 2 * (self.repeat + 1) * len(self.sweep_points))
+                                       + 2 * (max(self.repeat, LAB_REPEAT) + 1)
+                                       * len(self.sweep_points))
         sil_s = sum(0.05 * n * 10 for n in {*self.totals_points, *self.sweep_points}) \
             * len(self.algorithms)
         mean_n = np.mean([*self.totals_points, *self.sweep_points])
@@ -174,13 +179,14 @@ def sweep(plan: Plan) -> dict:
     phases = [(f"{d:g}ms", {"garbler_evaluator": Shape(d, rate_mbit=SERVER_RATE_MBIT)})
               for d in (0.0, 5.0)]
     try:
-        tcp, shaper, phase_rows = run_phases(_unique(specs), plan.repeat, phases)
+        tcp, shaper, phase_rows = run_phases(_unique(specs), max(plan.repeat, LAB_REPEAT),
+                                             phases)
         lab: str | dict = {"tcp": tcp, **shaper,
                            "links": {k: v["links"] for k, v in phase_rows.items()}}
         rows = {name: row["service"] for name, row in phase_rows.items()}
     except LabUnavailable as exc:
         lab = f"unavailable: {exc}; 0 ms measured on loopback, 5 ms not measured"
-        rows = {"0ms": service_report(_unique(specs), plan.repeat)["service"]}
+        rows = {"0ms": service_report(_unique(specs), max(plan.repeat, LAB_REPEAT))["service"]}
     out: dict = {"lab": lab, "series": {}}
     for phase, service in rows.items():
         for spec in specs:
@@ -208,7 +214,7 @@ def latency_sweep(repeat: int) -> dict:
         # the kernel's own TCP, as users get it: the client's links run cubic from their
         # first packet (net/conn.py), so a burst of labels takes one round trip
         spec = sil_spec("lm", 6)
-        tcp, shaper, rows = run_phases([spec], max(repeat, 5), phases)
+        tcp, shaper, rows = run_phases([spec], max(repeat, LAB_REPEAT), phases)
     except LabUnavailable as exc:
         return {"lab": f"unavailable: {exc}"}
     out: dict = {"tcp": tcp, **shaper, "delays_ms": list(LATENCY_DELAYS_MS)}

@@ -54,7 +54,7 @@ def test_a_paper_run_records_its_commit_machine_and_engine(monkeypatch):
     assert "cores" in found["machine"]
     monkeypatch.setenv("SNAIL_ENGINE", "numpy")
     assert provenance()["engine"] == "numpy (asked for)"
-    assert "the numpy (asked for) engine" in headline(provenance(), {})
+    assert "engine: numpy (asked for)" in headline(provenance(), {})
 
 
 def test_the_update_rewrites_only_the_block(tmp_path: Path):
