@@ -79,6 +79,17 @@ def test_the_shaped_link_is_measured(lab):
     assert shaped["rate_mbit"] > 1 and plain["rate_mbit"] > 1
 
 
+def test_a_long_link_is_measured_at_its_rate_not_its_slow_start():
+    """80 ms round trip at 200 Mbit/s: TCP needs ~0.6 s of slow start to fill it, so a
+    rate taken over a short blast from its first byte reads far below the link's (half of
+    it here; 314 of 1,000 Mbit/s for the `continent` profile's 1 s blast)."""
+    with Lab() as lab:
+        lab.shape({"garbler_evaluator": Shape(delay_ms=40, rate_mbit=200)})
+        measured = lab.measure("garbler_evaluator", seconds=0.5)
+    assert 75 <= measured["rtt_ms"] < 100, measured
+    assert 160 <= measured["rate_mbit"] <= 210, measured
+
+
 def test_unshaped_links_are_direct_and_the_control_run_crosses_the_forwarder():
     """Unshaped, a link's ends are bridged in the kernel (no forwarder runs); the control
     run sends every link through the forwarder at zero delay, and its CPU is counted."""
