@@ -41,7 +41,7 @@ def provenance() -> dict:
 def _engine() -> str:
     status = engine_status()
     if status["engine"] == "native":
-        threads = status["threads"]
+        threads = int(status["threads"])
         return f"native kernel, {threads} thread{'' if threads == 1 else 's'} per run"
     return f"numpy ({status.get('reason', 'asked for')})"
 
