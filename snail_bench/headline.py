@@ -132,8 +132,9 @@ def headline(results: dict, paper: dict) -> str:
     lines = [f"From one `snail-bench paper` run: {results.get('started', '?')} to "
              f"{results.get('finished', '?')}, commit {results.get('commit', 'unknown')}, "
              f"{results.get('machine', 'machine unknown')}; both servers and the client on it, "
-             f"loopback TLS, the default circuits, {_engine_phrase(results)}. Paper: "
-             "EMP-toolkit on a desktop CPU.",
+             f"TLS on every link, {_links_phrase(results)}, the default circuits and "
+             f"`--scheme auto`, {_engine_phrase(results)}. Paper: EMP-toolkit on a desktop "
+             "CPU.",
              ""]
     latency = results.get("latency", {})
     if latency.get("commit"):
@@ -143,6 +144,15 @@ def headline(results: dict, paper: dict) -> str:
     lines += [f"| {figure} | {ours} | {theirs} |" for figure, ours, theirs in rows(results,
                                                                                    paper)]
     return "\n".join(lines) + "\n"
+
+
+def _links_phrase(results: dict) -> str:
+    """Where the iteration rows ran: across the network lab's link between the servers
+    (the paper's 2.5 Gbit/s) when the run could build it, else on loopback."""
+    if isinstance(results.get("sweep", {}).get("lab"), dict):
+        return ("iterations across the network lab's 2.5 Gbit/s link between the servers, "
+                "localizations on loopback")
+    return "loopback"
 
 
 def _engine_phrase(results: dict) -> str:
