@@ -63,7 +63,13 @@ from snail_common.net.errors import (
     ProtocolError,
     RemoteError,
 )
-from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES, ahead_depth, pick_scheme
+from snail_common.net.linkrates import (
+    AUTO,
+    CLIENT_SCHEMES,
+    Cycle,
+    ahead_depth,
+    pick_scheme,
+)
 from snail_common.pnp.spec import owner_bits
 
 from .ahead import AheadPool
@@ -112,6 +118,8 @@ class AsyncSecureRunner:
         # from what the garbler measured (linkrates.pick_scheme)
         self.scheme = scheme
         self.measured: dict[str, float] = {}  # the garbler's last rates (its stats)
+        self.cycles: dict[str, Cycle] = {}  # this client's own, per circuit id
+        self.schemes: dict[str, str] = {}  # the scheme of each circuit's last run
         self._ahead_floor = ahead
         self.last: Invocation | None = None
         self.totals = dict.fromkeys(LINKS, 0)
@@ -120,7 +128,7 @@ class AsyncSecureRunner:
         self.replicas = {role: ReplicaSet(role, addr, functools.partial(self._open, role))
                          for role, addr in (("garbler", self.garbler_addr),
                                             ("evaluator", self.evaluator_addr))}
-        self.ahead = AheadPool(ahead, self._prepare, self._cancel)
+        self.ahead = AheadPool(ahead, self._prepare, self._cancel, self._adopt)
         self.frame: tuple[bytes, str] | None = None  # see use_frame
 
     def use_frame(self, handle: bytes, map_owner: str) -> None:
@@ -244,6 +252,7 @@ class AsyncSecureRunner:
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
         ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
         self._measured(g_stats["timing"], session, traffic["garbler_to_evaluator"], wall)
+        self._cycled(session, e_stats["timing"], wall)
         timing["client_ahead"] = float(self.ahead.ahead)  # the depth it sized from them
         self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e, session.scheme)
         self.invocations += 1
@@ -263,10 +272,24 @@ class AsyncSecureRunner:
                 self.measured, session.iface.counts["and"], session.scheme, table_bytes,
                 wall))
 
-    def session_scheme(self) -> str:
-        """The scheme of the next session: the runner's, or with ``auto`` the one the
-        garbler's last measurements favour."""
-        return pick_scheme(self.measured) if self.scheme == AUTO else self.scheme
+    def _cycled(self, session: Prepared, timing: dict[str, float], wall: float) -> None:
+        """Take this invocation into the client's cycle on its circuit (what ``auto``
+        weighs a scheme's fewer bytes against)."""
+        circuit_id = session.circuit_id
+        self.schemes[circuit_id] = session.scheme
+        if "evaluate_s" in timing:
+            cycle = self.cycles.setdefault(circuit_id, Cycle(session.iface.counts["and"]))
+            cycle.invoked(session.scheme, wall, float(timing["evaluate_s"]),
+                          float(timing.get("wait_s", 0.0)))
+
+    def session_scheme(self, circuit_id: str) -> str:
+        """The scheme of the next session of ``circuit_id``: the runner's, or with
+        ``auto`` the one the garbler's last measurements and this client's cycle on the
+        circuit favour."""
+        if self.scheme != AUTO:
+            return self.scheme
+        return pick_scheme(self.measured, self.cycles.get(circuit_id),
+                           self.schemes.get(circuit_id, "halfgates"))
 
     async def _prepare(self, circuit_id: str, fixed: bool = True) -> Prepared:
         """Ask for a session's garbling now, with fresh secrets (and, ``fixed``, send the
@@ -306,13 +329,10 @@ class AsyncSecureRunner:
         if fixed is not None and fixed.mask.shape != (iface.n_inputs,):
             raise ServiceError(f"{circuit_id}: the fixed inputs cover {fixed.mask.size} "
                                f"wires, the circuit has {iface.n_inputs}")
-        todo = np.ones(FIRST_INPUT + iface.n_inputs - n_owner, bool)
-        if fixed is not None:
-            todo[:FIRST_INPUT] = False  # the constants' labels never change either
-            todo[FIRST_INPUT:] = ~fixed.mask[:iface.n_inputs - n_owner]
+        todo = _todo(iface.n_inputs, n_owner, fixed)
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
-        scheme = self.session_scheme()
+        scheme = self.session_scheme(circuit_id)
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
         chash = iface.content_hash
         try:
@@ -320,9 +340,7 @@ class AsyncSecureRunner:
                 "session_start", sid=sid, circuit=circuit_id, hash=chash,
                 scheme=scheme))
             if fixed is not None:
-                labels = active_input_labels(seed, delta, fixed.bits)
-                sent_e += sum(write_labels(evaluator.conn, "input_labels", sid, labels[a:b],
-                                           a, todo.size) for a, b in runs(~todo))
+                sent_e += _send_fixed(evaluator, sid, seed, delta, fixed, todo)
             sent_g = garbler.conn.write(messages.make(
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
                 delta=labels_to_bytes(delta), key=key, scheme=scheme, **owner,
@@ -334,6 +352,24 @@ class AsyncSecureRunner:
             raise
         return Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
                          sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo, scheme)
+
+    @staticmethod
+    def _adopt(session: Prepared, fixed: FixedInputs) -> bool:
+        """Give a session prepared without a frame's labels (kept garbled between
+        frames) this frame's ``fixed`` ones now; False where it cannot take them (its
+        link broke, or they do not fit its circuit): it is then cancelled."""
+        n_inputs = session.iface.n_inputs
+        if session.fixed is not None or not session.usable \
+                or fixed.mask.shape != (n_inputs,):
+            return False
+        todo = _todo(n_inputs, session.owner_bits, fixed)
+        try:
+            session.sent_e += _send_fixed(session.evaluator, session.sid, session.seed,
+                                          session.delta, fixed, todo)
+        except ConnectionClosed:
+            return False
+        session.fixed, session.todo = fixed, todo
+        return True
 
     async def _collect(self, session: Prepared) -> list[tuple[np.ndarray, int, dict]]:
         """Both servers' label vectors and stats; the first failure cancels the other."""
@@ -392,3 +428,22 @@ def _replica(evaluator: Link) -> dict[str, str]:
     if evaluator.conn.info.get("instance"):
         named["evaluator_id"] = evaluator.conn.info["instance"]
     return named
+
+
+def _todo(n_inputs: int, n_owner: int, fixed: FixedInputs | None) -> np.ndarray:
+    """The client's label slots (two constants, then its input wires) still to send when
+    a session is invoked: all of them, or those the ``fixed`` labels do not cover."""
+    todo = np.ones(FIRST_INPUT + n_inputs - n_owner, bool)
+    if fixed is not None:
+        todo[:FIRST_INPUT] = False  # the constants' labels never change either
+        todo[FIRST_INPUT:] = ~fixed.mask[:n_inputs - n_owner]
+    return todo
+
+
+def _send_fixed(evaluator: Link, sid: bytes, seed: bytes, delta: np.ndarray,
+                fixed: FixedInputs, todo: np.ndarray) -> int:
+    """Queue the labels of the slots ``todo`` leaves out (the constants and the
+    ``fixed`` inputs) to the evaluator; the bytes written."""
+    labels = active_input_labels(seed, delta, fixed.bits)
+    return sum(write_labels(evaluator.conn, "input_labels", sid, labels[a:b], a, todo.size)
+               for a, b in runs(~todo))

@@ -15,7 +15,7 @@ import pytest
 from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES
 from snail_common.net import tcpinfo
 from snail_common.net.conn import new_event_loop
-from snail_common.net.linkrates import LinkRates, bytes_per_and, pick_scheme
+from snail_common.net.linkrates import Cycle, LinkRates, bytes_per_and, pick_scheme
 from snail_common.net.tls import client_context, make_certs, server_context
 
 
@@ -28,6 +28,44 @@ def test_auto_picks_three_halves_on_a_link_slower_than_the_garbler():
     assert pick_scheme({**slow_link, "link_mbit": 10_000.0}) == "halfgates"
     # the garbler's CPU is the limit at 1 Gbit/s: half-gates' faster garbling wins
     assert pick_scheme({**slow_link, "link_mbit": 1000.0}) == "halfgates"
+
+
+# the garbler's report and one n = 6 invocation under `region` (10 ms / 1 Gbit/s between
+# the servers, 20 ms / 100 Mbit/s to the client), as the lab measured them: half-gates'
+# 5.7 MB of tables take 48 ms on the link, three-halves' 4.4 MB 37 ms, and the client's
+# own cycle, 42 ms of round trip and transfer plus the evaluation, 52 ms
+REGION = {"and_per_s_halfgates": 27e6, "and_per_s_threehalves": 16e6, "link_mbit": 956.0}
+NX_SIL_N6_AND = 177_347
+
+
+def _cycle(scheme: str, other_s: float, evaluate_s: float) -> Cycle:
+    cycle = Cycle(NX_SIL_N6_AND)
+    for _ in range(3):
+        cycle.invoked(scheme, other_s + evaluate_s, evaluate_s, 0.0)
+    return cycle
+
+
+def test_auto_keeps_half_gates_where_the_clients_cycle_outlasts_the_tables():
+    """Three-halves' fewer bytes only pay where the link sets the pace: under `region` at
+    n = 6 the client's own cycle is longer than either scheme's tables, and three-halves'
+    slower evaluation lengthens it (the lab: 1.16 s per localization against
+    half-gates' 1.05 s). Per AND gate alone the link looks like the limit."""
+    assert pick_scheme(REGION) == "threehalves"  # no cycle measured: the link alone
+    assert pick_scheme(REGION, _cycle("halfgates", 0.0425, 0.010)) == "halfgates"
+    # measured under three-halves, its slower evaluation makes half-gates the faster
+    assert pick_scheme(REGION, _cycle("threehalves", 0.0425, 0.017),
+                       current="threehalves") == "halfgates"
+    # a client next to the evaluator: the tables are the limit again
+    assert pick_scheme(REGION, _cycle("halfgates", 0.002, 0.010)) == "threehalves"
+
+
+def test_auto_does_not_switch_on_a_close_call():
+    """Within SWITCH_GAIN of each other both schemes run at one pace: the scheme stays,
+    in either direction."""
+    near = _cycle("halfgates", 0.0425, 0.001)  # half-gates 48 ms of tables, three 44 ms
+    assert pick_scheme(REGION, near) == "halfgates"
+    assert pick_scheme(REGION, _cycle("threehalves", 0.0425, 0.006),  # half 2 % faster
+                       current="threehalves") == "threehalves"
 
 
 def test_auto_is_half_gates_until_something_is_measured():
@@ -65,6 +103,20 @@ def test_the_link_rate_comes_from_samples_the_garbler_did_not_limit():
     assert report["and_per_s_halfgates"] == 2_000_000
     assert report["and_per_s_threehalves"] < 2_000_000  # derived until measured
     assert report["link_rtt_ms"] == 10.0
+
+
+def test_the_round_trip_follows_a_link_that_got_slower():
+    """The lab's phases (and a stream moved to a farther replica) change the round trip
+    under a garbler that has measured another: a minimum kept forever held the region
+    profile's 20 ms link at the unshaped phase's 0.007 ms, and sized the garble-ahead
+    for a link with no delay."""
+    rates = LinkRates()
+    for _ in range(3):
+        rates.streamed(_info(10e9, app_limited=False, rtt_us=7))
+    for _ in range(12):
+        rates.streamed(_info(800e6, app_limited=False, rtt_us=20_000))
+    assert rates.rtt_s == pytest.approx(0.02, rel=0.02)
+    assert rates.link_rate == pytest.approx(800e6, rel=0.2)  # an EWMA: it gets there
 
 
 def test_tcp_info_of_a_real_connection():

@@ -98,6 +98,45 @@ def test_fixed_labels_go_ahead_and_results_stay_the_circuits(services):
     assert runs_[3][1].labels_on_call >= (n + 2) * LABEL_BYTES  # all, in a fresh session
 
 
+def test_sessions_kept_between_frames_take_the_next_frames_labels(services):
+    """In a sequence, the sessions garbled after a frame's last invocation get the next
+    frame's fixed labels when it is declared, not before: the evaluator assembles each
+    label vector from two sends far apart, and the results stay the circuit's."""
+    _, schedule = registry.compiled(CIRCUIT)
+    n = schedule.n_inputs
+    rng = np.random.default_rng(8)
+    mask = np.zeros(n, bool)
+    mask[n // 4:] = True
+    frames = [FixedInputs(mask, (rng.random(n) < 0.5) & mask) for _ in range(3)]
+
+    def bits_of(fixed: FixedInputs) -> np.ndarray:
+        bits = rng.random(n) < 0.5
+        bits[mask] = fixed.bits[mask]
+        return bits
+
+    async def scenario():
+        async with AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
+                                     services.tls_dir, timeout=60, ahead=2) as r:
+            results = []
+            for number, fixed in enumerate(frames):
+                r.expect(CIRCUIT, 3, fixed)
+                if number == 2:  # what the second frame left garbled, now with labels
+                    kept = list(r.ahead._prepared[CIRCUIT])
+                for _ in range(3):
+                    bits = bits_of(fixed)
+                    results.append((bits, await r.invoke(CIRCUIT, bits)))
+                await asyncio.sleep(0.3)
+            return results, kept, frames[2]
+
+    results, kept, last = asyncio.run(scenario())
+    for bits, inv in results:
+        np.testing.assert_array_equal(inv.outputs, _cleartext(bits))
+    assert len(kept) == 2 and all(s.fixed is last for s in kept)
+    pose_labels = (n // 4) * LABEL_BYTES
+    for _, inv in results[6:]:  # the kept ones sent only the pose's on the round trip
+        assert pose_labels <= inv.labels_on_call < pose_labels + 200
+
+
 class _Recorder:
     """A secure runner that records what the backend asks of it."""
 

@@ -60,14 +60,16 @@ class LinkRates:
             self.and_per_s[scheme] = _blend(self.and_per_s.get(scheme), n_and / cpu_s)
 
     def streamed(self, info: TcpInfo | None) -> None:
-        """The table stream's connection after a session: its round trip always, its
-        delivery rate when that sample was not limited by the garbler having nothing
-        to send (an app-limited sample is only a lower bound of the link's rate)."""
+        """The table stream's connection after a session: its smoothed round trip,
+        blended (a minimum kept forever would hold a link that got slower, or a stream
+        that moved to a farther replica, to the old round trip and keep the garble-ahead
+        too shallow), and its delivery rate when that sample was not limited by the
+        garbler having nothing to send (an app-limited sample is only a lower bound)."""
         if info is None:
             return
-        rtt = info.min_rtt_s if info.min_rtt_s else info.rtt_s
+        rtt = info.rtt_s or info.min_rtt_s  # smoothed: what the tables meet now
         if rtt:
-            self.rtt_s = rtt if self.rtt_s is None else min(self.rtt_s, rtt)
+            self.rtt_s = _blend(self.rtt_s, rtt)
         if info.delivery_rate and not info.app_limited:
             self.link_rate = _blend(self.link_rate, info.delivery_rate)
         elif info.delivery_rate and (self.link_rate is None
@@ -104,19 +106,68 @@ def seconds_per_and(scheme: int, and_per_s: float, link_bytes_per_s: float) -> f
     return max(1 / and_per_s, bytes_per_and(scheme) / link_bytes_per_s)
 
 
-def pick_scheme(report: dict[str, float] | None) -> str:
+@dataclass
+class Cycle:
+    """A client's own measure of its invocations of one circuit (``n_and`` AND gates):
+    the seconds of each that were not the evaluation (its round trip, the transfer of
+    its labels and outputs, its own work) and, per scheme, the evaluation's own seconds
+    (without its waits for tables). Blended like the garbler's rates."""
+
+    n_and: int
+    other_s: float | None = None
+    evaluate_s: dict[str, float] = field(default_factory=dict)
+
+    def invoked(self, scheme: str, wall_s: float, evaluate_s: float, wait_s: float) -> None:
+        """An invocation in ``scheme`` took ``wall_s``; the evaluator spent ``evaluate_s``
+        from the client's labels to its result, ``wait_s`` of it waiting for tables."""
+        self.other_s = _blend(self.other_s, max(wall_s - evaluate_s, 0.0))
+        self.evaluate_s[scheme] = _blend(self.evaluate_s.get(scheme),
+                                         max(evaluate_s - wait_s, 0.0))
+
+
+SCHEME_IDS = {"halfgates": SCHEME_HALF_GATES, "threehalves": SCHEME_THREE_HALVES}
+# the other scheme must promise a session this much shorter before auto switches to it:
+# closer predictions say only that both run at one pace, and flipping on noise would
+# cost the garble-ahead sessions of the scheme left
+SWITCH_GAIN = 0.1
+
+
+def session_seconds(scheme: str, rates: dict[str, float], link_bytes_per_s: float,
+                    cycle: Cycle | None) -> float:
+    """A session's predicted pace in ``scheme``: the slowest of garbling it, sending its
+    tables, and (once ``cycle`` has measured it) the client's cycle around it; per AND
+    gate while the circuit is unknown. ``rates``: AND/s garbling each scheme."""
+    n_and = cycle.n_and if cycle is not None else 1
+    pace = n_and * seconds_per_and(SCHEME_IDS[scheme], rates[scheme], link_bytes_per_s)
+    if cycle is None or cycle.other_s is None or not cycle.evaluate_s:
+        return pace
+    if scheme in cycle.evaluate_s:
+        evaluation = cycle.evaluate_s[scheme]
+    else:  # evaluation costs as garbling does, relative to the other scheme's
+        measured, seconds = next(iter(cycle.evaluate_s.items()))
+        evaluation = seconds * rates[measured] / rates[scheme]
+    return max(pace, cycle.other_s + evaluation)
+
+
+def pick_scheme(report: dict[str, float] | None, cycle: Cycle | None = None,
+                current: str = "halfgates") -> str:
     """The scheme a session should use given the garbler's last ``report`` (its stats
-    timing fields, as ``LinkRates.report`` writes them): three-halves when its fewer
-    bytes make the session faster on this link than half-gates' faster garbling does,
-    half-gates otherwise and while nothing is measured."""
+    timing fields, as ``LinkRates.report`` writes them) and the client's ``cycle`` on
+    this circuit: the ``current`` one unless the other promises a session at least
+    SWITCH_GAIN shorter. Three-halves' fewer bytes win where the link, not the garbler
+    nor the client's own round trip, sets the pace. Half-gates while nothing is
+    measured."""
     if not report or "link_mbit" not in report or "and_per_s_halfgates" not in report:
         return "halfgates"
     link = report["link_mbit"] * 1e6 / 8
-    half = seconds_per_and(SCHEME_HALF_GATES, report["and_per_s_halfgates"], link)
-    three_rate = report.get("and_per_s_threehalves",
-                            report["and_per_s_halfgates"] * THREE_HALVES_SHARE)
-    three = seconds_per_and(SCHEME_THREE_HALVES, three_rate, link)
-    return "threehalves" if three < half else "halfgates"
+    rates = {"halfgates": report["and_per_s_halfgates"],
+             "threehalves": report.get("and_per_s_threehalves",
+                                       report["and_per_s_halfgates"] * THREE_HALVES_SHARE)}
+    other = "threehalves" if current == "halfgates" else "halfgates"
+    if session_seconds(other, rates, link, cycle) \
+            < (1 - SWITCH_GAIN) * session_seconds(current, rates, link, cycle):
+        return other
+    return current
 
 
 MAX_AHEAD = 3  # sessions garbled ahead at most: each holds a stream and evaluator memory

@@ -1,0 +1,94 @@
+"""The client's garble-ahead pool on its own (fake servers): how many sessions it keeps
+prepared, with which frame's labels, and what it does with them when the frame changes."""
+
+from __future__ import annotations
+
+import asyncio
+from types import SimpleNamespace
+
+import numpy as np
+
+from snail_client.ahead import AheadPool
+from snail_client.sessions import FixedInputs
+
+CIRCUIT = "ops/x"
+MASK = np.array([False, False, True, True])
+
+
+def _frame(a: bool, b: bool) -> FixedInputs:
+    return FixedInputs(MASK, np.array([False, False, a, b]))
+
+
+class _Servers:
+    """Prepares fake sessions and records what the pool asks."""
+
+    def __init__(self) -> None:
+        self.prepared: list[SimpleNamespace] = []
+        self.cancelled: list[SimpleNamespace] = []
+        self.adopted: list[SimpleNamespace] = []
+        self.pool = AheadPool(3, self.prepare, self.cancelled.append, self.adopt)
+
+    async def prepare(self, circuit_id: str, with_fixed: bool) -> SimpleNamespace:
+        fixed = self.pool.fixed(circuit_id) if with_fixed else None
+        session = SimpleNamespace(usable=True, owner_bits=0, frame=None, fixed=fixed)
+        self.prepared.append(session)
+        return session
+
+    def adopt(self, session: SimpleNamespace, fixed: FixedInputs) -> bool:
+        self.adopted.append(session)
+        session.fixed = fixed
+        return True
+
+    async def frame(self, fixed: FixedInputs, invocations: int) -> list[SimpleNamespace]:
+        """A frame as a localization makes it: expect, then its invocations in turn."""
+        self.pool.expect(CIRCUIT, invocations, fixed)
+        used = []
+        for _ in range(invocations):
+            await asyncio.sleep(0)
+            bits = fixed.bits | np.array([True, False, False, False])  # a pose bit
+            session = (self.pool.take(CIRCUIT, bits, None)
+                       or await self.pool.in_flight(CIRCUIT, bits, None))
+            assert session is not None and FixedInputs.same(session.fixed, fixed)
+            used.append(session)
+            self.pool.used(CIRCUIT)
+            self.pool.fill(CIRCUIT)
+        await self.settle()
+        return used
+
+    async def settle(self) -> None:
+        """Let every preparation under way finish (and its callback run)."""
+        await asyncio.gather(*self.pool._filling)
+        await asyncio.sleep(0)
+
+    def queued(self) -> list[SimpleNamespace]:
+        return list(self.pool._prepared.get(CIRCUIT, ()))
+
+
+def test_a_single_frame_prepares_only_its_own_invocations():
+    async def scenario():
+        servers = _Servers()
+        await servers.frame(_frame(True, False), 5)
+        return servers
+
+    servers = asyncio.run(scenario())
+    assert len(servers.prepared) == 5 and not servers.queued() and not servers.cancelled
+
+
+def test_a_sequence_keeps_its_depth_garbled_between_frames():
+    """From a circuit's second frame on, the sessions beyond the frame's invocations are
+    garbled without its labels, and the next frame sends its own for them: none is
+    cancelled and the next frame's first invocation does not wait for a garbling."""
+    async def scenario():
+        servers = _Servers()
+        await servers.frame(_frame(True, False), 5)
+        await servers.frame(_frame(False, True), 5)
+        warm = servers.queued()
+        assert len(warm) == 3 and all(s.fixed is None for s in warm)
+        prepared = len(servers.prepared)
+        used = await servers.frame(_frame(True, True), 5)
+        return servers, warm, used, prepared
+
+    servers, warm, used, prepared = asyncio.run(scenario())
+    assert used[:3] == warm and servers.adopted == warm
+    assert not servers.cancelled
+    assert len(servers.prepared) == prepared + 2 + 3  # the frame's other 2, then 3 warm
