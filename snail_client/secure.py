@@ -68,6 +68,7 @@ from snail_common.net.linkrates import (
     CLIENT_SCHEMES,
     Cycle,
     ahead_depth,
+    deeper,
     pick_scheme,
 )
 from snail_common.pnp.spec import owner_bits
@@ -251,7 +252,8 @@ class AsyncSecureRunner:
         timing = {f"garbler_{k}": v for k, v in g_stats["timing"].items()}
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
         ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
-        self._measured(g_stats["timing"], session, traffic["garbler_to_evaluator"], wall)
+        self._measured(g_stats["timing"], session, traffic["garbler_to_evaluator"], wall,
+                       float(e_stats["timing"].get("wait_s", 0.0)) if ahead else 0.0)
         self._cycled(session, e_stats["timing"], wall)
         timing["client_ahead"] = float(self.ahead.ahead)  # the depth it sized from them
         self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e, session.scheme)
@@ -261,16 +263,17 @@ class AsyncSecureRunner:
         return self.last
 
     def _measured(self, report: dict[str, float], session: Prepared, table_bytes: int,
-                  wall: float) -> None:
+                  wall: float, waited: float) -> None:
         """Take the garbler's rates from a session's stats; size the garble-ahead depth
-        from them (its tables at the evaluator before they are asked for)."""
+        from them (its tables at the evaluator before they are asked for), one deeper
+        where the evaluation of a session garbled ahead still ``waited`` for tables."""
         self.measured.update({k: v for k, v in report.items()
                               if k.startswith(("and_per_s_", "link_"))})
         if self._ahead_floor > 0:  # it only grows: one slow invocation (a busy core)
             # must not take away the depth the next ones need
-            self.ahead.ahead = max(self.ahead.ahead, self._ahead_floor, ahead_depth(
-                self.measured, session.iface.counts["and"], session.scheme, table_bytes,
-                wall))
+            self.ahead.ahead = max(deeper(self.ahead.ahead, waited), self._ahead_floor,
+                                   ahead_depth(self.measured, session.iface.counts["and"],
+                                               session.scheme, table_bytes, wall))
 
     def _cycled(self, session: Prepared, timing: dict[str, float], wall: float) -> None:
         """Take this invocation into the client's cycle on its circuit (what ``auto``

@@ -15,7 +15,14 @@ import pytest
 from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES
 from snail_common.net import tcpinfo
 from snail_common.net.conn import new_event_loop
-from snail_common.net.linkrates import Cycle, LinkRates, bytes_per_and, pick_scheme
+from snail_common.net.linkrates import (
+    MAX_AHEAD,
+    Cycle,
+    LinkRates,
+    bytes_per_and,
+    deeper,
+    pick_scheme,
+)
 from snail_common.net.tls import client_context, make_certs, server_context
 
 
@@ -68,6 +75,15 @@ def test_auto_does_not_switch_on_a_close_call():
                        current="threehalves") == "threehalves"
 
 
+def test_an_evaluation_that_waited_for_tables_deepens_the_garble_ahead():
+    """20 ms on every link: the rate and delay said one session ahead suffices, yet the
+    window-limited stream brought an n = 6 session's tables 57 ms after they were sent
+    and the evaluator waited 13-28 ms per invocation (+41 to +58 ms over unshaped)."""
+    assert deeper(1, 0.013) == 2 and deeper(2, 0.028) == 3
+    assert deeper(MAX_AHEAD, 0.05) == MAX_AHEAD  # bounded: each holds evaluator memory
+    assert deeper(1, 0.0005) == 1  # a wait within noise keeps it
+
+
 def test_auto_is_half_gates_until_something_is_measured():
     assert pick_scheme(None) == "halfgates"
     assert pick_scheme({"and_per_s_halfgates": 2e6}) == "halfgates"
@@ -89,7 +105,13 @@ def _info(rate: float, app_limited: bool, rtt_us: int = 10_000) -> tcpinfo.TcpIn
     return info
 
 
-def test_the_link_rate_comes_from_samples_the_garbler_did_not_limit():
+def test_the_link_rate_is_the_largest_recent_sample():
+    """Samples understate the link far more often than they overstate it: under
+    `region` an average of them read the 1 Gbit/s link as 390-580 Mbit/s."""
+    rates = LinkRates()
+    for rate in (118e6, 48e6, 62e6, 115e6, 70e6):
+        rates.streamed(_info(rate, app_limited=False))
+    assert rates.link_rate == 118e6
     rates = LinkRates()
     rates.streamed(_info(50e6, app_limited=True))  # a lower bound: taken while unknown
     assert rates.link_rate == 50e6

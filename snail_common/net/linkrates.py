@@ -4,15 +4,16 @@ where the link is).
 
 The garbler measures both on its own sessions: its garbling rate per scheme (AND gates
 per CPU second of the thread that garbled them) and the table stream's delivery rate and
-round trip (``tcpinfo``: the kernel's sample, used only when the stream, not the garbler,
-was the limit). It reports them in each session's ``stats``; a client asking for
-``auto`` picks the scheme of its next session from them (``pick_scheme``), and every
-client sizes its garble-ahead depth from them (``ahead_depth``).
+round trip (``tcpinfo``: the kernel's samples; the rate is the largest of the recent
+ones). It reports them in each session's ``stats``; a client asking for ``auto`` picks
+the scheme of its next session from them and from its own cycle (``pick_scheme``), and
+every client sizes its garble-ahead depth from them (``ahead_depth``, ``deeper``).
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES, table_words
@@ -22,6 +23,7 @@ from .tcpinfo import TcpInfo
 AUTO = "auto"  # the client's default: the scheme picked per session from the measurements
 CLIENT_SCHEMES = (AUTO, "halfgates", "threehalves")
 EWMA = 0.3  # weight of the newest sample
+RATE_WINDOW = 10  # the table stream's rate is the largest of this many sessions' samples
 # three-halves garbles at about this share of half-gates' rate on one core, per garbling
 # engine (numpy, README: 3.0 vs 7.9 M AND/s on wide steps; the native kernel, `snail-bench
 # engine` 2026-11-27 10:16, load 1.4: 23.1 vs 38.1 M AND/s, half-gates on VAES); used
@@ -45,9 +47,19 @@ class LinkRates:
     round trip (s)."""
 
     and_per_s: dict[int, float] = field(default_factory=dict)
-    link_rate: float | None = None
     rtt_s: float | None = None
     share: float = THREE_HALVES_SHARE  # the serving engine's (SHARE_BY_ENGINE)
+    # the table stream's last delivery-rate samples (bytes/s)
+    rate_samples: deque[float] = field(default_factory=lambda: deque(maxlen=RATE_WINDOW))
+
+    @property
+    def link_rate(self) -> float | None:
+        """The link's rate: the largest of the last RATE_WINDOW samples, as BBR takes
+        its bottleneck bandwidth. A sample rarely overstates the link, but often
+        understates it (the stream's tail, a sender with nothing to send): an average
+        of them read a 1 Gbit/s link as 390-580 Mbit/s, and auto took three-halves for
+        a link-bound pair."""
+        return max(self.rate_samples) if self.rate_samples else None
 
     @classmethod
     def for_engine(cls, engine: str) -> LinkRates:
@@ -63,18 +75,14 @@ class LinkRates:
         """The table stream's connection after a session: its smoothed round trip,
         blended (a minimum kept forever would hold a link that got slower, or a stream
         that moved to a farther replica, to the old round trip and keep the garble-ahead
-        too shallow), and its delivery rate when that sample was not limited by the
-        garbler having nothing to send (an app-limited sample is only a lower bound)."""
+        too shallow), and its delivery-rate sample."""
         if info is None:
             return
         rtt = info.rtt_s or info.min_rtt_s  # smoothed: what the tables meet now
         if rtt:
             self.rtt_s = _blend(self.rtt_s, rtt)
-        if info.delivery_rate and not info.app_limited:
-            self.link_rate = _blend(self.link_rate, info.delivery_rate)
-        elif info.delivery_rate and (self.link_rate is None
-                                     or info.delivery_rate > self.link_rate):
-            self.link_rate = info.delivery_rate  # app-limited, yet faster than believed
+        if info.delivery_rate:
+            self.rate_samples.append(float(info.delivery_rate))
 
     def rate_of(self, scheme: int) -> float | None:
         """AND/s garbling ``scheme``: measured, or derived from the other scheme's."""
@@ -188,3 +196,15 @@ def ahead_depth(report: dict[str, float], n_and: int, scheme: str, table_bytes: 
     if report.get("link_mbit"):
         lag += table_bytes * 8 / (report["link_mbit"] * 1e6)
     return max(1, min(most, math.ceil(lag / interval_s)))
+
+
+# an evaluation that waited longer than this for the tables of a session garbled ahead
+WAIT_DEEPER_S = 0.002
+
+
+def deeper(depth: int, waited_s: float, most: int = MAX_AHEAD) -> int:
+    """The garble-ahead depth after an evaluation of a session garbled ahead waited
+    ``waited_s`` for its tables: one more where it waited. The tables took longer than
+    the measured rate and delay say (a stream limited by its window on a long link, a
+    garbler sharing its cores), so the estimate alone keeps the depth too shallow."""
+    return min(depth + 1, most) if waited_s > WAIT_DEEPER_S and depth < most else depth
