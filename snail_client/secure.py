@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import math
 import secrets
 import time
 from pathlib import Path
@@ -283,7 +284,8 @@ class AsyncSecureRunner:
         if "evaluate_s" in timing:
             cycle = self.cycles.setdefault(circuit_id, Cycle(session.iface.counts["and"]))
             cycle.invoked(session.scheme, wall, float(timing["evaluate_s"]),
-                          float(timing.get("wait_s", 0.0)))
+                          float(timing.get("wait_s", 0.0)),
+                          float(timing.get("ahead_s", math.inf)))
 
     def session_scheme(self, circuit_id: str) -> str:
         """The scheme of the next session of ``circuit_id``: the runner's, or with

@@ -203,7 +203,8 @@ class GarblerDaemon(Daemon):
                 cpu_s = timeline.pop("cpu_s")
                 if lanes == 1:  # a lane's thread may have garbled for the others
                     self.rates.garbled(scheme, schedule.n_and, cpu_s)
-                self.rates.streamed(tcp_info(evaluator.transport.get_extra_info("socket")))
+                self.rates.streamed(tcp_info(evaluator.transport.get_extra_info("socket")),
+                                    self.counters["streaming"] + 1)  # the others and this
                 self._advise()
                 timeline["request"] = t_wall
                 record["timeline"] = timeline

@@ -45,10 +45,10 @@ REGION = {"and_per_s_halfgates": 27e6, "and_per_s_threehalves": 16e6, "link_mbit
 NX_SIL_N6_AND = 177_347
 
 
-def _cycle(scheme: str, other_s: float, evaluate_s: float) -> Cycle:
+def _cycle(scheme: str, other_s: float, evaluate_s: float, wait_s: float = 0.0) -> Cycle:
     cycle = Cycle(NX_SIL_N6_AND)
     for _ in range(3):
-        cycle.invoked(scheme, other_s + evaluate_s, evaluate_s, 0.0)
+        cycle.invoked(scheme, other_s + evaluate_s + wait_s, evaluate_s + wait_s, wait_s)
     return cycle
 
 
@@ -62,8 +62,30 @@ def test_auto_keeps_half_gates_where_the_clients_cycle_outlasts_the_tables():
     # measured under three-halves, its slower evaluation makes half-gates the faster
     assert pick_scheme(REGION, _cycle("threehalves", 0.0425, 0.017),
                        current="threehalves") == "halfgates"
-    # a client next to the evaluator: the tables are the limit again
-    assert pick_scheme(REGION, _cycle("halfgates", 0.002, 0.010)) == "threehalves"
+    # a client next to the evaluator: the tables are the limit again, and every
+    # evaluation waits for them
+    assert pick_scheme(REGION, _cycle("halfgates", 0.002, 0.010, 0.035)) == "threehalves"
+
+
+def test_auto_leaves_half_gates_only_once_evaluations_wait_for_tables():
+    """The garbler's rate samples are rough (one stream's share, a tail): the service
+    phase of a region run read the 1 Gbit/s link as 130-280 Mbit/s. A link that slow
+    would make three-halves far faster, yet no evaluation waited for tables, so the
+    link did not set the pace. Waits over a fifth of the time say it does; a session
+    asked for just before its invocation waits whatever the link."""
+    misread = {**REGION, "link_mbit": 200.0}
+    assert pick_scheme(misread, _cycle("halfgates", 0.0425, 0.010)) == "halfgates"
+    assert pick_scheme(misread, _cycle("halfgates", 0.0425, 0.010, 0.050)) == "threehalves"
+    cold = Cycle(NX_SIL_N6_AND)  # a frame's first session, asked for just then
+    cold.invoked("halfgates", 0.2, 0.16, 0.15, ahead_s=0.003)
+    for _ in range(3):
+        cold.invoked("halfgates", 0.0525, 0.010, 0.0, ahead_s=0.15)
+    assert pick_scheme(misread, cold) == "halfgates"
+    # side by side, sessions arrive in bunches: one waits for several, the next none
+    bunched = Cycle(NX_SIL_N6_AND)
+    for wait in (2.2, 0.0, 0.0, 3.7, 0.0, 0.0):
+        bunched.invoked("halfgates", wait + 0.01, wait + 0.005, wait, ahead_s=1.0)
+    assert pick_scheme(misread, bunched) == "threehalves"
 
 
 def test_auto_does_not_switch_on_a_close_call():
@@ -105,13 +127,21 @@ def _info(rate: float, app_limited: bool, rtt_us: int = 10_000) -> tcpinfo.TcpIn
     return info
 
 
-def test_the_link_rate_is_the_largest_recent_sample():
-    """Samples understate the link far more often than they overstate it: under
-    `region` an average of them read the 1 Gbit/s link as 390-580 Mbit/s."""
+def test_the_link_rate_is_the_median_of_recent_samples_of_the_whole_link():
+    """A session's sample is its stream's share of the link: three sessions garbled
+    ahead over a 50 Mbit/s link read 5-40 Mbit/s each, mostly 11. Scaled by the streams
+    that shared the link, the median of recent samples keeps out both a stream's slow
+    tail and a burst a token bucket let through."""
     rates = LinkRates()
-    for rate in (118e6, 48e6, 62e6, 115e6, 70e6):
-        rates.streamed(_info(rate, app_limited=False))
-    assert rates.link_rate == 118e6
+    for rate in (1.4e6, 1.3e6, 1.5e6, 5e6, 1.4e6):  # bytes/s, each of three streams
+        rates.streamed(_info(rate, app_limited=False), streams=3)
+    assert rates.link_rate == pytest.approx(4.2e6)
+    region = LinkRates()
+    for mbit in (34.5, 936, 938, 1098, 957, 936, 782, 958):  # one stream, as measured
+        region.streamed(_info(mbit * 1e6 / 8, app_limited=False))
+    assert 900 < region.link_rate * 8 / 1e6 < 960
+
+
     rates = LinkRates()
     rates.streamed(_info(50e6, app_limited=True))  # a lower bound: taken while unknown
     assert rates.link_rate == 50e6

@@ -80,10 +80,12 @@ def test_garbled_ahead_tables_are_at_the_evaluator_before_the_client_asks(tmp_pa
 
 def test_auto_picks_three_halves_on_a_link_slower_than_the_garbler(tmp_path):
     """A 50 Mbit/s server link carries half-gates' tables slower than the garbler makes
-    them: after the first sessions measured it, auto asks for three-halves."""
+    them: once evaluations have waited for tables three times in a row, auto asks for
+    three-halves (the sessions garbled ahead before that stay half-gates; the first
+    invocation's long wait lets the next sessions' tables arrive in time)."""
     with Lab() as lab, lab_services(lab, tmp_path) as services:
         lab.shape({"garbler_evaluator": Shape(1, rate_mbit=50)})
-        rows = _invocations(lab, services, "auto", 6)
+        rows = _invocations(lab, services, "auto", 10)
     assert rows[0]["scheme"] == "halfgates"  # nothing measured yet
     assert rows[-1]["scheme"] == "threehalves", rows
     assert rows[-1]["tables"] < 0.8 * rows[0]["tables"]

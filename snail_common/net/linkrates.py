@@ -4,15 +4,17 @@ where the link is).
 
 The garbler measures both on its own sessions: its garbling rate per scheme (AND gates
 per CPU second of the thread that garbled them) and the table stream's delivery rate and
-round trip (``tcpinfo``: the kernel's samples; the rate is the largest of the recent
-ones). It reports them in each session's ``stats``; a client asking for ``auto`` picks
-the scheme of its next session from them and from its own cycle (``pick_scheme``), and
-every client sizes its garble-ahead depth from them (``ahead_depth``, ``deeper``).
+round trip (``tcpinfo``: the kernel's samples; the rate is the median of the recent
+ones, each scaled by the streams that shared the link). It reports them in each
+session's ``stats``; a client asking for ``auto`` picks the scheme of its next session
+from them and from its own cycle (``pick_scheme``), and every client sizes its
+garble-ahead depth from them (``ahead_depth``, ``deeper``).
 """
 
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -23,7 +25,13 @@ from .tcpinfo import TcpInfo
 AUTO = "auto"  # the client's default: the scheme picked per session from the measurements
 CLIENT_SCHEMES = (AUTO, "halfgates", "threehalves")
 EWMA = 0.3  # weight of the newest sample
-RATE_WINDOW = 10  # the table stream's rate is the largest of this many sessions' samples
+# an evaluation that waited longer than this for the tables of a session garbled ahead
+WAIT_DEEPER_S = 0.002
+WAITS_SEEN = 6  # the invocations whose waits for tables auto weighs
+WAITS_MIN = 3  # ... at least this many of them
+LATE_SHARE = 0.2  # waiting more than this share of their time: the tables set the pace
+COLD_AHEAD_S = 0.01  # a session the evaluator had for less than this was not ahead
+RATE_WINDOW = 10  # the table stream's rate is the median of this many sessions' samples
 # three-halves garbles at about this share of half-gates' rate on one core, per garbling
 # engine (numpy, README: 3.0 vs 7.9 M AND/s on wide steps; the native kernel, `snail-bench
 # engine` 2026-11-27 10:16, load 1.4: 23.1 vs 38.1 M AND/s, half-gates on VAES); used
@@ -54,12 +62,12 @@ class LinkRates:
 
     @property
     def link_rate(self) -> float | None:
-        """The link's rate: the largest of the last RATE_WINDOW samples, as BBR takes
-        its bottleneck bandwidth. A sample rarely overstates the link, but often
-        understates it (the stream's tail, a sender with nothing to send): an average
-        of them read a 1 Gbit/s link as 390-580 Mbit/s, and auto took three-halves for
-        a link-bound pair."""
-        return max(self.rate_samples) if self.rate_samples else None
+        """The link's rate: the median of the last RATE_WINDOW samples. One stream's
+        sample is its share of the link (garble-ahead streams several sessions at once
+        when the link is their limit: three at a time read a 50 Mbit/s link as 11), so
+        each is scaled by the streams it shared the link with; the median keeps both the
+        tails that understate a link and the bursts that overstate it out."""
+        return statistics.median(self.rate_samples) if self.rate_samples else None
 
     @classmethod
     def for_engine(cls, engine: str) -> LinkRates:
@@ -71,18 +79,25 @@ class LinkRates:
         if n_and > 0 and cpu_s > 0:
             self.and_per_s[scheme] = _blend(self.and_per_s.get(scheme), n_and / cpu_s)
 
-    def streamed(self, info: TcpInfo | None) -> None:
-        """The table stream's connection after a session: its smoothed round trip,
-        blended (a minimum kept forever would hold a link that got slower, or a stream
-        that moved to a farther replica, to the old round trip and keep the garble-ahead
-        too shallow), and its delivery-rate sample."""
+    def streamed(self, info: TcpInfo | None, streams: int = 1) -> None:
+        """The table stream's connection after a session, which shared the link with
+        ``streams`` - 1 others: its smoothed round trip, blended (a minimum kept forever
+        would hold a link that got slower, or a stream that moved to a farther replica,
+        to the old round trip and keep the garble-ahead too shallow), and its
+        delivery-rate sample times ``streams``, unless it only bounds the rate below."""
         if info is None:
             return
         rtt = info.rtt_s or info.min_rtt_s  # smoothed: what the tables meet now
         if rtt:
             self.rtt_s = _blend(self.rtt_s, rtt)
-        if info.delivery_rate:
-            self.rate_samples.append(float(info.delivery_rate))
+        if not info.delivery_rate:
+            return
+        sample = float(info.delivery_rate) * max(streams, 1)
+        known = self.link_rate
+        # an app-limited sample (the garbler had nothing to send) is only a lower bound:
+        # news while nothing is known or when it beats the estimate
+        if not info.app_limited or known is None or sample > known:
+            self.rate_samples.append(sample)
 
     def rate_of(self, scheme: int) -> float | None:
         """AND/s garbling ``scheme``: measured, or derived from the other scheme's."""
@@ -124,13 +139,30 @@ class Cycle:
     n_and: int
     other_s: float | None = None
     evaluate_s: dict[str, float] = field(default_factory=dict)
+    # (wall, wait for tables) of the last invocations whose sessions were garbled ahead
+    waits: deque[tuple[float, float]] = field(
+        default_factory=lambda: deque(maxlen=WAITS_SEEN))
 
-    def invoked(self, scheme: str, wall_s: float, evaluate_s: float, wait_s: float) -> None:
+    def invoked(self, scheme: str, wall_s: float, evaluate_s: float, wait_s: float,
+                ahead_s: float = math.inf) -> None:
         """An invocation in ``scheme`` took ``wall_s``; the evaluator spent ``evaluate_s``
-        from the client's labels to its result, ``wait_s`` of it waiting for tables."""
+        from the client's labels to its result, ``wait_s`` of it waiting for tables, and
+        had the session ``ahead_s`` before the labels came."""
         self.other_s = _blend(self.other_s, max(wall_s - evaluate_s, 0.0))
         self.evaluate_s[scheme] = _blend(self.evaluate_s.get(scheme),
                                          max(evaluate_s - wait_s, 0.0))
+        if ahead_s >= COLD_AHEAD_S:  # a session asked for just now waits whatever the link
+            self.waits.append((wall_s, wait_s))
+
+    @property
+    def tables_late(self) -> bool:
+        """The recent invocations spent more than LATE_SHARE of their time waiting for
+        tables: the link (or the garbler) sets the pace, not the client's cycle. Sessions
+        streamed side by side arrive in bunches, so one invocation waits for several and
+        the next ones for none: the share, not each wait, tells."""
+        if len(self.waits) < WAITS_MIN:
+            return False
+        return sum(w for _, w in self.waits) > LATE_SHARE * sum(t for t, _ in self.waits)
 
 
 SCHEME_IDS = {"halfgates": SCHEME_HALF_GATES, "threehalves": SCHEME_THREE_HALVES}
@@ -163,14 +195,18 @@ def pick_scheme(report: dict[str, float] | None, cycle: Cycle | None = None,
     timing fields, as ``LinkRates.report`` writes them) and the client's ``cycle`` on
     this circuit: the ``current`` one unless the other promises a session at least
     SWITCH_GAIN shorter. Three-halves' fewer bytes win where the link, not the garbler
-    nor the client's own round trip, sets the pace. Half-gates while nothing is
-    measured."""
+    nor the client's own round trip, sets the pace; half-gates is left only once the
+    evaluations have been waiting for tables (the link's rate, one stream's samples,
+    is too rough to decide on alone). Half-gates while nothing is measured."""
     if not report or "link_mbit" not in report or "and_per_s_halfgates" not in report:
         return "halfgates"
     link = report["link_mbit"] * 1e6 / 8
     rates = {"halfgates": report["and_per_s_halfgates"],
              "threehalves": report.get("and_per_s_threehalves",
                                        report["and_per_s_halfgates"] * THREE_HALVES_SHARE)}
+    if current == "halfgates" and cycle is not None and cycle.other_s is not None \
+            and not cycle.tables_late:
+        return current  # tables in time: fewer bytes cannot make a session sooner
     other = "threehalves" if current == "halfgates" else "halfgates"
     if session_seconds(other, rates, link, cycle) \
             < (1 - SWITCH_GAIN) * session_seconds(current, rates, link, cycle):
@@ -196,10 +232,6 @@ def ahead_depth(report: dict[str, float], n_and: int, scheme: str, table_bytes: 
     if report.get("link_mbit"):
         lag += table_bytes * 8 / (report["link_mbit"] * 1e6)
     return max(1, min(most, math.ceil(lag / interval_s)))
-
-
-# an evaluation that waited longer than this for the tables of a session garbled ahead
-WAIT_DEEPER_S = 0.002
 
 
 def deeper(depth: int, waited_s: float, most: int = MAX_AHEAD) -> int:
