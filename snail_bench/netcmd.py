@@ -48,7 +48,8 @@ SCHEME_CHOICES = list(CLIENT_SCHEMES)
               show_default=True, help="Length of each link's throughput blast.")
 @click.option("--congestion-control", metavar="NAME", default=None,
               help="TCP congestion control on the lab's links (e.g. cubic, reno, bbr; "
-                   "default: the kernel's).")
+                   "default: the kernel's), set on their routes: it overrides the cubic "
+                   "the service asks for on the client's links.")
 @click.option("--slow-start-after-idle/--no-slow-start-after-idle", default=None,
               help="The hosts' net.ipv4.tcp_slow_start_after_idle inside the lab "
                    "(default: the kernel's, on).")

@@ -1,7 +1,10 @@
 """TCP on the lab's hosts, tuned as an operator would tune real ones, inside the lab's
 namespaces only (each network namespace has its own ``net.ipv4`` settings).
 
-- ``congestion``: the congestion control on every lab route (``ip route ... congctl``);
+- ``congestion``: the congestion control on every lab route (``ip route ... congctl``;
+  this kernel refuses ``net.ipv4.tcp_congestion_control`` inside a namespace). A route's
+  choice overrides a socket's own, so it also overrides the cubic the service asks for
+  on links with a client at one end (snail_common/net/conn.py);
 - ``slow_start_after_idle``: ``net.ipv4.tcp_slow_start_after_idle``;
 - ``buffer_bytes``: the largest socket buffers TCP may grow to (the third value of
   ``net.ipv4.tcp_wmem`` and ``tcp_rmem``), never below the kernel's own: a stream whose
