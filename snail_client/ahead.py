@@ -8,7 +8,8 @@ other shared input bits (``FixedInputs``), another map-owner frame, or whose lin
 is cancelled when found and a fresh one is garbled.
 
 A runner localizing a sequence (a second frame of a circuit was declared) keeps its
-depth garbled between frames too: sessions beyond the current frame's invocations are
+depth garbled between frames too, for the circuit of its last frame only (a frame of
+another circuit cancels them): sessions beyond the current frame's invocations are
 prepared without a frame's labels, and the next frame's ``expect`` sends its labels for
 them. Without that, each frame's first invocation waited for a whole garbling and its
 trip across the server link (about 0.1 s of a 1.2 s localization under `region`).
@@ -37,6 +38,7 @@ class AheadPool:
         self._cancel = cancel
         self._adopt = adopt  # sends a frame's fixed labels for a session prepared without
         self._frames: dict[str, int] = {}  # frames declared per circuit id
+        self._warm: str | None = None  # the circuit of the last frame: kept warm alone
         self._prepared: dict[str, deque[Prepared]] = {}
         self._expected: dict[str, int] = {}
         self._fixed: dict[str, FixedInputs | None] = {}
@@ -48,6 +50,9 @@ class AheadPool:
         the ``fixed`` input bits they share already at the evaluator."""
         self._fixed[circuit_id] = fixed
         self._frames[circuit_id] = self._frames.get(circuit_id, 0) + 1
+        if self._warm not in (None, circuit_id):  # another circuit now (a new n): its
+            self._drop_warm(self._warm)  # sessions kept between frames would only linger
+        self._warm = circuit_id
         queue = self._prepared.get(circuit_id, deque())
         for session in [x for x in queue if not FixedInputs.same(x.fixed, fixed)]:
             if session.fixed is None and fixed is not None and self._adopt(session, fixed):
@@ -95,7 +100,7 @@ class AheadPool:
         without its labels."""
         queue = self._prepared.setdefault(circuit_id, deque())
         frame_left = self._expected.get(circuit_id, 0)
-        sequence = self._frames.get(circuit_id, 0) > 1
+        sequence = self._frames.get(circuit_id, 0) > 1 and circuit_id == self._warm
         want = self.ahead if sequence else min(self.ahead, frame_left)
         pending = len(queue) + sum(1 for t in self._filling if t.get_name() == circuit_id)
         for i in range(pending, want):
@@ -110,6 +115,10 @@ class AheadPool:
             name, session = task.get_name(), task.result()
             queue = self._prepared.setdefault(name, deque())
             fixed = self._fixed.get(name)
+            if session.fixed is None and name != self._warm \
+                    and not self._expected.get(name, 0):  # kept for a circuit left since
+                self._cancel(session)
+                return
             if session.fixed is None and fixed is not None and \
                     sum(x.fixed is not None for x in queue) < self._expected.get(name, 0) \
                     and not self._adopt(session, fixed):  # asked for before the frame came
@@ -118,6 +127,13 @@ class AheadPool:
             queue.append(session)
         # a failed preparation is not an error yet: the invocation that needs one
         # prepares again and reports what breaks
+
+    def _drop_warm(self, circuit_id: str) -> None:
+        """Cancel the sessions of ``circuit_id`` kept garbled without a frame's labels."""
+        queue = self._prepared.get(circuit_id, deque())
+        for session in [x for x in queue if x.fixed is None]:
+            queue.remove(session)
+            self._cancel(session)
 
     async def close(self) -> None:
         """Stop preparing and cancel every prepared session."""

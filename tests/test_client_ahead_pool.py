@@ -12,6 +12,7 @@ from snail_client.ahead import AheadPool
 from snail_client.sessions import FixedInputs
 
 CIRCUIT = "ops/x"
+OTHER = "ops/y"
 MASK = np.array([False, False, True, True])
 
 
@@ -39,19 +40,20 @@ class _Servers:
         session.fixed = fixed
         return True
 
-    async def frame(self, fixed: FixedInputs, invocations: int) -> list[SimpleNamespace]:
+    async def frame(self, fixed: FixedInputs, invocations: int,
+                    circuit: str = CIRCUIT) -> list[SimpleNamespace]:
         """A frame as a localization makes it: expect, then its invocations in turn."""
-        self.pool.expect(CIRCUIT, invocations, fixed)
+        self.pool.expect(circuit, invocations, fixed)
         used = []
         for _ in range(invocations):
             await asyncio.sleep(0)
             bits = fixed.bits | np.array([True, False, False, False])  # a pose bit
-            session = (self.pool.take(CIRCUIT, bits, None)
-                       or await self.pool.in_flight(CIRCUIT, bits, None))
+            session = (self.pool.take(circuit, bits, None)
+                       or await self.pool.in_flight(circuit, bits, None))
             assert session is not None and FixedInputs.same(session.fixed, fixed)
             used.append(session)
-            self.pool.used(CIRCUIT)
-            self.pool.fill(CIRCUIT)
+            self.pool.used(circuit)
+            self.pool.fill(circuit)
         await self.settle()
         return used
 
@@ -60,8 +62,8 @@ class _Servers:
         await asyncio.gather(*self.pool._filling)
         await asyncio.sleep(0)
 
-    def queued(self) -> list[SimpleNamespace]:
-        return list(self.pool._prepared.get(CIRCUIT, ()))
+    def queued(self, circuit: str = CIRCUIT) -> list[SimpleNamespace]:
+        return list(self.pool._prepared.get(circuit, ()))
 
 
 def test_a_single_frame_prepares_only_its_own_invocations():
@@ -92,3 +94,21 @@ def test_a_sequence_keeps_its_depth_garbled_between_frames():
     assert used[:3] == warm and servers.adopted == warm
     assert not servers.cancelled
     assert len(servers.prepared) == prepared + 2 + 3  # the frame's other 2, then 3 warm
+
+
+def test_a_frame_of_another_circuit_cancels_the_sessions_kept_warm():
+    """A sequence whose frames change circuit (another number of points) must not leave
+    each circuit's warm sessions at the servers: the garbler's sessions and the
+    evaluator's table buffer would fill with sessions no frame uses."""
+    async def scenario():
+        servers = _Servers()
+        for _ in range(2):
+            await servers.frame(_frame(True, False), 5)
+        warm = servers.queued()
+        await servers.frame(_frame(False, True), 5, circuit=OTHER)
+        await servers.frame(_frame(True, True), 5, circuit=OTHER)
+        return servers, warm
+
+    servers, warm = asyncio.run(scenario())
+    assert len(warm) == 3 and all(s in servers.cancelled for s in warm)
+    assert not servers.queued() and len(servers.queued(OTHER)) == 3
