@@ -18,7 +18,7 @@ import statistics
 from collections import deque
 from dataclasses import dataclass, field
 
-from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES, table_words
+from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES, scheme_id, table_words
 
 from .tcpinfo import TcpInfo
 
@@ -165,7 +165,6 @@ class Cycle:
         return sum(w for _, w in self.waits) > LATE_SHARE * sum(t for t, _ in self.waits)
 
 
-SCHEME_IDS = {"halfgates": SCHEME_HALF_GATES, "threehalves": SCHEME_THREE_HALVES}
 # the other scheme must promise a session this much shorter before auto switches to it:
 # closer predictions say only that both run at one pace, and flipping on noise would
 # cost the garble-ahead sessions of the scheme left
@@ -178,7 +177,7 @@ def session_seconds(scheme: str, rates: dict[str, float], link_bytes_per_s: floa
     tables, and (once ``cycle`` has measured it) the client's cycle around it; per AND
     gate while the circuit is unknown. ``rates``: AND/s garbling each scheme."""
     n_and = cycle.n_and if cycle is not None else 1
-    pace = n_and * seconds_per_and(SCHEME_IDS[scheme], rates[scheme], link_bytes_per_s)
+    pace = n_and * seconds_per_and(scheme_id(scheme), rates[scheme], link_bytes_per_s)
     if cycle is None or cycle.other_s is None or not cycle.evaluate_s:
         return pace
     if scheme in cycle.evaluate_s:
