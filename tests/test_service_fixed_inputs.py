@@ -56,6 +56,13 @@ def services(tmp_path_factory):
     yield from daemons_with(tmp_path_factory)
 
 
+def _bits_with(fixed: FixedInputs, rng: np.random.Generator) -> np.ndarray:
+    """Random input bits that keep ``fixed``'s bits where its mask says so."""
+    bits = rng.random(fixed.mask.size) < 0.5
+    bits[fixed.mask] = fixed.bits[fixed.mask]
+    return bits
+
+
 def _cleartext(bits: np.ndarray) -> np.ndarray:
     _, schedule = registry.compiled(CIRCUIT)
     return evaluate_bits(schedule, bits[None])[0]
@@ -69,20 +76,15 @@ def test_fixed_labels_go_ahead_and_results_stay_the_circuits(services):
     mask[n // 4:] = True  # the pose is the first quarter, as in the SIL circuits
     fixed = FixedInputs(mask, (rng.random(n) < 0.5) & mask)
 
-    def pose_bits() -> np.ndarray:
-        bits = rng.random(n) < 0.5
-        bits[mask] = fixed.bits[mask]
-        return bits
-
     async def scenario():
         async with AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
                                      services.tls_dir, timeout=60, ahead=2) as r:
-            first = pose_bits()
+            first = _bits_with(fixed, rng)
             plain = await r.invoke(CIRCUIT, first)  # nothing prepared yet: all labels
             r.expect(CIRCUIT, 4, fixed)
             await asyncio.sleep(0.5)
             runs_ = [(bits, await r.invoke(CIRCUIT, bits))
-                     for bits in (pose_bits(), pose_bits(), pose_bits())]
+                     for bits in [_bits_with(fixed, rng) for _ in range(3)]]
             other = rng.random(n) < 0.5  # not the frame's bits: a fresh session
             runs_.append((other, await r.invoke(CIRCUIT, other)))
             return (first, plain), runs_
@@ -109,11 +111,6 @@ def test_sessions_kept_between_frames_take_the_next_frames_labels(services):
     mask[n // 4:] = True
     frames = [FixedInputs(mask, (rng.random(n) < 0.5) & mask) for _ in range(3)]
 
-    def bits_of(fixed: FixedInputs) -> np.ndarray:
-        bits = rng.random(n) < 0.5
-        bits[mask] = fixed.bits[mask]
-        return bits
-
     async def scenario():
         async with AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
                                      services.tls_dir, timeout=60, ahead=2) as r:
@@ -123,7 +120,7 @@ def test_sessions_kept_between_frames_take_the_next_frames_labels(services):
                 if number == 2:  # what the second frame left garbled, now with labels
                     kept = list(r.ahead._prepared[CIRCUIT])
                 for _ in range(3):
-                    bits = bits_of(fixed)
+                    bits = _bits_with(fixed, rng)
                     results.append((bits, await r.invoke(CIRCUIT, bits)))
                 await asyncio.sleep(0.3)
             return results, kept, frames[2]
