@@ -45,7 +45,6 @@ import numpy as np
 
 from snail_common import families
 from snail_common.circuit import registry
-from snail_common.circuit.ir import FIRST_INPUT
 from snail_common.gc import (
     IntegrityError,
     active_input_labels,
@@ -85,7 +84,9 @@ from .sessions import (
     FixedInputs,
     Invocation,
     Prepared,
+    label_slots_to_send,
     parse_address,
+    send_fixed_labels,
 )
 
 DEFAULT_TIMEOUT = 300.0
@@ -334,7 +335,7 @@ class AsyncSecureRunner:
         if fixed is not None and fixed.mask.shape != (iface.n_inputs,):
             raise ServiceError(f"{circuit_id}: the fixed inputs cover {fixed.mask.size} "
                                f"wires, the circuit has {iface.n_inputs}")
-        todo = _todo(iface.n_inputs, n_owner, fixed)
+        todo = label_slots_to_send(iface.n_inputs, n_owner, fixed)
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
         scheme = self.session_scheme(circuit_id)
@@ -345,7 +346,7 @@ class AsyncSecureRunner:
                 "session_start", sid=sid, circuit=circuit_id, hash=chash,
                 scheme=scheme))
             if fixed is not None:
-                sent_e += _send_fixed(evaluator, sid, seed, delta, fixed, todo)
+                sent_e += send_fixed_labels(evaluator, sid, seed, delta, fixed, todo)
             sent_g = garbler.conn.write(messages.make(
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
                 delta=labels_to_bytes(delta), key=key, scheme=scheme, **owner,
@@ -367,9 +368,9 @@ class AsyncSecureRunner:
         if session.fixed is not None or not session.usable \
                 or fixed.mask.shape != (n_inputs,):
             return False
-        todo = _todo(n_inputs, session.owner_bits, fixed)
+        todo = label_slots_to_send(n_inputs, session.owner_bits, fixed)
         try:
-            session.sent_e += _send_fixed(session.evaluator, session.sid, session.seed,
+            session.sent_e += send_fixed_labels(session.evaluator, session.sid, session.seed,
                                           session.delta, fixed, todo)
         except ConnectionClosed:
             return False
@@ -434,21 +435,3 @@ def _replica(evaluator: Link) -> dict[str, str]:
         named["evaluator_id"] = evaluator.conn.info["instance"]
     return named
 
-
-def _todo(n_inputs: int, n_owner: int, fixed: FixedInputs | None) -> np.ndarray:
-    """The client's label slots (two constants, then its input wires) still to send when
-    a session is invoked: all of them, or those the ``fixed`` labels do not cover."""
-    todo = np.ones(FIRST_INPUT + n_inputs - n_owner, bool)
-    if fixed is not None:
-        todo[:FIRST_INPUT] = False  # the constants' labels never change either
-        todo[FIRST_INPUT:] = ~fixed.mask[:n_inputs - n_owner]
-    return todo
-
-
-def _send_fixed(evaluator: Link, sid: bytes, seed: bytes, delta: np.ndarray,
-                fixed: FixedInputs, todo: np.ndarray) -> int:
-    """Queue the labels of the slots ``todo`` leaves out (the constants and the
-    ``fixed`` inputs) to the evaluator; the bytes written."""
-    labels = active_input_labels(seed, delta, fixed.bits)
-    return sum(write_labels(evaluator.conn, "input_labels", sid, labels[a:b], a, todo.size)
-               for a, b in runs(~todo))

@@ -1,6 +1,7 @@
 """What a secure invocation is made of on the client: the result of one run
 (``Invocation``), a session prepared ahead of its inputs (``Prepared``), the input bits a
-frame's invocations share (``FixedInputs``), and the links whose bytes are counted."""
+frame's invocations share (``FixedInputs``) and which label slots a session still needs,
+and the links whose bytes are counted."""
 
 from __future__ import annotations
 
@@ -8,8 +9,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from snail_common.circuit.ir import Interface
+from snail_common.circuit.ir import FIRST_INPUT, Interface
+from snail_common.gc import active_input_labels
 from snail_common.gc.stream import DEFAULT_SCHEME
+from snail_common.net.chunks import runs, write_labels
 from snail_common.net.conn import parse_addr
 
 from .links import Inbox, Link
@@ -99,3 +102,20 @@ def parse_address(value: Address, name: str) -> tuple[str, int]:
         raise ValueError(f"{name}: {exc}") from None
 
 
+def label_slots_to_send(n_inputs: int, n_owner: int, fixed: FixedInputs | None) -> np.ndarray:
+    """The client's label slots (two constants, then its input wires) still to send when
+    a session is invoked: all of them, or those the ``fixed`` labels do not cover."""
+    todo = np.ones(FIRST_INPUT + n_inputs - n_owner, bool)
+    if fixed is not None:
+        todo[:FIRST_INPUT] = False  # the constants' labels never change either
+        todo[FIRST_INPUT:] = ~fixed.mask[:n_inputs - n_owner]
+    return todo
+
+
+def send_fixed_labels(evaluator: Link, sid: bytes, seed: bytes, delta: np.ndarray,
+                fixed: FixedInputs, todo: np.ndarray) -> int:
+    """Queue the labels of the slots ``todo`` leaves out (the constants and the
+    ``fixed`` inputs) to the evaluator; the bytes written."""
+    labels = active_input_labels(seed, delta, fixed.bits)
+    return sum(write_labels(evaluator.conn, "input_labels", sid, labels[a:b], a, todo.size)
+               for a, b in runs(~todo))
