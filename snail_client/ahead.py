@@ -114,19 +114,25 @@ class AheadPool:
         if not task.cancelled() and task.exception() is None:
             name, session = task.get_name(), task.result()
             queue = self._prepared.setdefault(name, deque())
-            fixed = self._fixed.get(name)
-            if session.fixed is None and name != self._warm \
-                    and not self._expected.get(name, 0):  # kept for a circuit left since
-                self._cancel(session)
-                return
-            if session.fixed is None and fixed is not None and \
-                    sum(x.fixed is not None for x in queue) < self._expected.get(name, 0) \
-                    and not self._adopt(session, fixed):  # asked for before the frame came
+            if session.fixed is None and not self._can_serve(name, queue, session):
                 self._cancel(session)
                 return
             queue.append(session)
         # a failed preparation is not an error yet: the invocation that needs one
         # prepares again and reports what breaks
+
+    def _can_serve(self, name: str, queue: deque, session: Prepared) -> bool:
+        """Whether a session garbled without a frame's labels still has a frame to serve:
+        kept warm for the last frame's circuit, or taking the labels of the frame now
+        expected where its queue lacks sessions that have them (asked for before the
+        frame came). Not when its circuit has been left since."""
+        expected = self._expected.get(name, 0)
+        if not expected:
+            return name == self._warm
+        fixed = self._fixed.get(name)
+        if fixed is None or sum(x.fixed is not None for x in queue) >= expected:
+            return True
+        return self._adopt(session, fixed)
 
     def _drop_warm(self, circuit_id: str) -> None:
         """Cancel the sessions of ``circuit_id`` kept garbled without a frame's labels."""
