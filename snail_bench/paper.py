@@ -71,12 +71,18 @@ class Plan:
     micro_lanes: int  # operations per garbled micro-benchmark circuit
     profile_points: tuple[int, ...] = (6, 12, 64)  # a localization per network profile
 
+    @property
+    def lab_repeat(self) -> int:
+        """Invocations per circuit in a lab sweep: at least a localization's count, since
+        the client sizes its garble-ahead from its first invocations."""
+        return max(self.repeat, LAB_REPEAT)
+
     def expected_minutes(self) -> float:
         """A rough forecast on 2 cores with a cold circuit cache: a DO circuit compiles in
         about 100 s and runs in about 20 s; a SIL circuit costs ~0.05 s per point to build
         and ~(0.15 + 0.005 n) s per run."""
         runs = len(self.algorithms) * (MIN_INVOCATIONS * len(self.totals_points)
-                                       + 2 * (max(self.repeat, LAB_REPEAT) + 1)
+                                       + 2 * (self.lab_repeat + 1)
                                        * len(self.sweep_points))
         sil_s = sum(0.05 * n * 10 for n in {*self.totals_points, *self.sweep_points}) \
             * len(self.algorithms)
@@ -133,7 +139,7 @@ def measure_all(plan: Plan, tick: Callable[[str], object] = lambda _: None) -> d
     tick("do totals")
     results["sweep"] = sweep(plan)
     tick("sweep")
-    results["latency"] = latency_sweep(plan.repeat)
+    results["latency"] = latency_sweep(plan.lab_repeat)
     tick("latency")
     results["profiles"] = profiles(plan.profile_points)
     tick("profiles")
@@ -183,14 +189,14 @@ def sweep(plan: Plan) -> dict:
     phases = [(f"{d:g}ms", {"garbler_evaluator": Shape(d, rate_mbit=SERVER_RATE_MBIT)})
               for d in (0.0, 5.0)]
     try:
-        tcp, shaper, phase_rows = run_phases(_unique(specs), max(plan.repeat, LAB_REPEAT),
+        tcp, shaper, phase_rows = run_phases(_unique(specs), plan.lab_repeat,
                                              phases)
         lab: str | dict = {"tcp": tcp, **shaper,
                            "links": {k: v["links"] for k, v in phase_rows.items()}}
         rows = {name: row["service"] for name, row in phase_rows.items()}
     except LabUnavailable as exc:
         lab = f"unavailable: {exc}; 0 ms measured on loopback, 5 ms not measured"
-        rows = {"0ms": service_report(_unique(specs), max(plan.repeat, LAB_REPEAT))["service"]}
+        rows = {"0ms": service_report(_unique(specs), plan.lab_repeat)["service"]}
     out: dict = {"lab": lab, "series": {}}
     for phase, service in rows.items():
         for spec in specs:
@@ -218,7 +224,7 @@ def latency_sweep(repeat: int) -> dict:
         # the kernel's own TCP, as users get it: the client's links run cubic from their
         # first packet (net/conn.py), so a burst of labels takes one round trip
         spec = sil_spec("lm", 6)
-        tcp, shaper, rows = run_phases([spec], max(repeat, LAB_REPEAT), phases)
+        tcp, shaper, rows = run_phases([spec], repeat, phases)
     except LabUnavailable as exc:
         return {"lab": f"unavailable: {exc}"}
     out: dict = {"tcp": tcp, **shaper, "delays_ms": list(LATENCY_DELAYS_MS)}
