@@ -366,7 +366,8 @@ class GarblerDaemon(Daemon):
                              return_exceptions=True)
 
 
-def _timed_next(frames: Iterator[bytes], clock: dict[str, float]) -> bytes | None:
+def _timed_next(frames: Iterator[bytes | memoryview], clock: dict[str, float]
+                ) -> bytes | memoryview | None:
     """The next table frame (None at the end), adding this thread's CPU seconds spent
     garbling it to ``clock["cpu_s"]`` (the garbler's own rate, whatever else the cores
     run) and stamping ``clock["garbled"]`` when a frame is done (epoch seconds)."""

@@ -31,9 +31,9 @@ class _Batch(Batch):
         self.schedule, self.block, self.frame = schedule, block, frame
         self.secrets: list[tuple[bytes, bytes, bytes]] = []
         self._lock = threading.Lock()
-        self._frames: Iterator[list[bytes]] | None = None
+        self._frames: Iterator[list[bytes | memoryview]] | None = None
         self._garbler: LaneGarbler | None = None
-        self._queues: list[deque[bytes] | None] = []
+        self._queues: list[deque[bytes | memoryview] | None] = []
         self._ended = False
 
     def join(self, seed: bytes, delta: bytes, key: bytes) -> int:
@@ -41,7 +41,7 @@ class _Batch(Batch):
         self._queues.append(deque())
         return len(self.secrets) - 1
 
-    def next_frame(self, lane: int) -> bytes | None:
+    def next_frame(self, lane: int) -> bytes | memoryview | None:
         """Lane ``lane``'s next frame (garbling every lane's if none is queued), or None
         at the end of the stream. Runs in the worker pool."""
         with self._lock:
@@ -81,7 +81,7 @@ class LaneView:
     def lanes(self) -> int:
         return len(self._batch.secrets)
 
-    def frames(self) -> Iterator[bytes]:
+    def frames(self) -> Iterator[bytes | memoryview]:
         try:
             while (data := self._batch.next_frame(self._lane)) is not None:
                 yield data

@@ -16,7 +16,9 @@ from snail_common.gc import (
     fresh_delta,
     fresh_seed,
 )
+from snail_common.gc import engine as gc_engine
 from snail_common.gc.lanes import LaneEvaluator, LaneGarbler
+from snail_common.gc.native.build import NativeUnavailable
 
 
 def schedules():
@@ -128,3 +130,32 @@ def test_a_dropped_lane_never_holds_up_the_others():
             got = decode_output_labels(deltas[k], garblers[k].output_zero_labels,
                                        ev.output_labels(k))
             np.testing.assert_array_equal(got, want[k])
+
+
+def _engine(name: str):
+    """``name`` as a test parameter, skipped with the reason where it cannot run."""
+    try:
+        gc_engine.resolve(name)
+    except NativeUnavailable as exc:  # pragma: no cover - where no compiler or AES-NI
+        return pytest.param(name, marks=pytest.mark.skip(reason=f"{name}: {exc}"))
+    return name
+
+
+@pytest.mark.parametrize("engine", [_engine(e) for e in gc_engine.ENGINES])
+def test_lane_frames_are_uncopied_views_that_later_frames_never_overwrite(engine):
+    """Each lane's table frame is a byte view of an array of its own (no copy on its way
+    to TLS), and frames kept while the next ones are garbled keep their bytes."""
+    _, schedule = registry.compiled("ops/fmul-x4")
+    seeds, deltas, keys = secrets_for(2)
+
+    def lane_garbler():
+        return LaneGarbler(schedule, seeds, deltas, keys, block_gates=64, frame_bytes=4096,
+                           engine=engine)
+
+    kept = list(lane_garbler().frames())
+    one_by_one = [[bytes(part) for part in parts] for parts in lane_garbler().frames()]
+    tables = [part for parts in kept[1:] for part in parts]
+    assert len(kept) > 3
+    assert all(isinstance(f, memoryview) and f.format == "B" for f in tables)
+    assert len({id(f.obj) for f in tables}) == len(tables)
+    assert [[bytes(part) for part in parts] for parts in kept] == one_by_one

@@ -46,6 +46,12 @@ def _lane_rows(per_lane: Sequence[np.ndarray], n_slots: int) -> np.ndarray:
     return labels
 
 
+def _lane_views(frame: np.ndarray, words: int) -> list[memoryview]:
+    """Each lane's first ``words`` table words as a byte view, uncopied on their way to
+    TLS: the frame array is the views' own, never filled again."""
+    return [memoryview(lane[:words]).cast("B") for lane in frame]
+
+
 def _lane_labels(labels: np.ndarray, slots: np.ndarray, lane: int) -> np.ndarray:
     return labels[slots, 2 * lane : 2 * lane + 2].copy()
 
@@ -88,7 +94,7 @@ class LaneGarbler:
             raise RuntimeError("the streams have not been garbled to their end yet")
         return self._outputs
 
-    def frames(self) -> Iterator[list[bytes]]:
+    def frames(self) -> Iterator[list[bytes | memoryview]]:
         s, block = self._schedule, self.headers[0].block_gates
         yield [h.pack() for h in self.headers]
         labels = _lane_rows(self._input_zero, s.n_slots)
@@ -101,28 +107,28 @@ class LaneGarbler:
         pos, m = 0, first_block(run)
         while m is not None:
             if pos + 4 * m > self._frame_words:
-                yield [lane[:pos].tobytes() for lane in frame]
-                pos = 0
+                yield _lane_views(frame, pos)
+                frame, pos = np.empty_like(frame), 0
             tables = frame[:, pos : pos + 4 * m].reshape(self.lanes, 2 * m, 2)
             pos += 4 * m
             m = next_block(run, tables)
         if pos:
-            yield [lane[:pos].tobytes() for lane in frame]
+            yield _lane_views(frame, pos)
         self._outputs = [_lane_labels(labels, s.output_slots, k) for k in range(self.lanes)]
 
-    def _native_frames(self, labels: np.ndarray) -> Iterator[list[bytes]]:
+    def _native_frames(self, labels: np.ndarray) -> Iterator[list[memoryview]]:
         """The frames after the headers, each filled by one kernel call."""
         s = self._schedule
         run = NativeRun(s, self.headers[0].block_gates, SCHEME_HALF_GATES, labels,
                         [h.key for h in self.headers], self._deltas)
-        frame = np.empty((self.lanes, self._frame_words), np.uint64)
         while not run.done:
             end, used = run.fit(self._frame_words)
             if end == run.pos:
                 raise RuntimeError("a block's tables exceed the frame")
+            frame = np.empty((self.lanes, self._frame_words), np.uint64)
             run.run(end, frame)
             if used:
-                yield [lane[:used].tobytes() for lane in frame]
+                yield _lane_views(frame, used)
         self._outputs = [_lane_labels(labels, s.output_slots, k) for k in range(self.lanes)]
 
 
