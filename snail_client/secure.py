@@ -271,9 +271,10 @@ class AsyncSecureRunner:
         where the evaluation of a session garbled ahead still ``waited`` for tables."""
         self.measured.update({k: v for k, v in report.items()
                               if k.startswith(("and_per_s_", "link_"))})
+        delay = self.measured.get("link_rtt_ms", 0.0) / 2000  # the table stream's link
         if self._ahead_floor > 0:  # it only grows: one slow invocation (a busy core)
             # must not take away the depth the next ones need
-            self.ahead.ahead = max(deeper(self.ahead.ahead, waited), self._ahead_floor,
+            self.ahead.ahead = max(deeper(self.ahead.ahead, waited, delay), self._ahead_floor,
                                    ahead_depth(self.measured, session.iface.counts["and"],
                                                session.scheme, table_bytes, wall))
 

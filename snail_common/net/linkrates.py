@@ -233,9 +233,14 @@ def ahead_depth(report: dict[str, float], n_and: int, scheme: str, table_bytes: 
     return max(1, min(most, math.ceil(lag / interval_s)))
 
 
-def deeper(depth: int, waited_s: float, most: int = MAX_AHEAD) -> int:
+def deeper(depth: int, waited_s: float, link_delay_s: float, most: int = MAX_AHEAD) -> int:
     """The garble-ahead depth after an evaluation of a session garbled ahead waited
-    ``waited_s`` for its tables: one more where it waited. The tables took longer than
-    the measured rate and delay say (a stream limited by its window on a long link, a
-    garbler sharing its cores), so the estimate alone keeps the depth too shallow."""
-    return min(depth + 1, most) if waited_s > WAIT_DEEPER_S and depth < most else depth
+    ``waited_s`` for its tables: one more where it waited on a link whose one-way delay
+    (``link_delay_s``) is long enough to be why. A window-limited stream on a long link
+    brings the tables later than the measured rate and delay say, so the estimate alone
+    keeps the depth too shallow. On a short link a wait means busy servers (many clients
+    on one pair): sessions asked for earlier wait behind the same cores, and each one
+    more holds a stream and evaluator memory."""
+    if waited_s > WAIT_DEEPER_S and link_delay_s > WAIT_DEEPER_S and depth < most:
+        return depth + 1
+    return depth
