@@ -60,7 +60,7 @@ from snail_common.net.logs import event
 from snail_common.net.metrics import OK
 from snail_common.net.replicas import Address, Replicas
 from snail_common.net.service import Daemon, Options
-from snail_common.net.tcpinfo import link_advice
+from snail_common.net.tcpinfo import TcpInfo, link_advice
 from snail_common.net.tcpinfo import read as tcp_info
 
 from .lanes import LaneBatcher, LaneView
@@ -113,6 +113,7 @@ class GarblerDaemon(Daemon):
         self.evaluators = Replicas(evaluators, "--evaluator", "evaluator")
         self.client_ctx = client_ctx  # TLS context for the link to the evaluator
         self.idle: dict[Address, list[Connection]] = {}  # pooled, per evaluator replica
+        self.table_streams: set[Connection] = set()  # sessions' tables under way
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
         self.owners = OwnerInputs(client_ctx, options.handshake_timeout, map_owners)
         # garbling rates (this engine's) and the server link, measured
@@ -194,17 +195,19 @@ class GarblerDaemon(Daemon):
                                else await self.work(make))
                 t_ready = time.monotonic()
                 self.counters["streaming"] += 1
+                self.table_streams.add(evaluator)
                 try:
                     sent, answered, timeline = await self._stream(evaluator, garbler, req)
                 finally:
                     self.counters["streaming"] -= 1
+                    self.table_streams.discard(evaluator)
                 t_streamed = time.monotonic()
                 lanes = getattr(garbler, "lanes", 1)
                 cpu_s = timeline.pop("cpu_s")
                 if lanes == 1:  # a lane's thread may have garbled for the others
                     self.rates.garbled(scheme, schedule.n_and, cpu_s)
-                self.rates.streamed(tcp_info(evaluator.transport.get_extra_info("socket")),
-                                    self.counters["streaming"] + 1)  # the others and this
+                self.rates.streamed(_tcp_info(evaluator), [
+                    _tcp_info(c) for c in self.table_streams if c.peer == evaluator.peer])
                 self._advise()
                 timeline["request"] = t_wall
                 record["timeline"] = timeline
@@ -364,6 +367,11 @@ class GarblerDaemon(Daemon):
         self.idle.clear()
         await asyncio.gather(*(c.close(messages.make("bye")) for c in idle),
                              return_exceptions=True)
+
+
+def _tcp_info(conn: Connection) -> TcpInfo | None:
+    """The TCP_INFO of a connection's socket (None once it has gone)."""
+    return tcp_info(conn.transport.get_extra_info("socket")) if conn.transport else None
 
 
 def _timed_next(frames: Iterator[bytes | memoryview], clock: dict[str, float]

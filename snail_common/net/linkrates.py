@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from snail_common.gc.stream import SCHEME_HALF_GATES, SCHEME_THREE_HALVES, scheme_id, table_words
@@ -57,17 +58,24 @@ class LinkRates:
     and_per_s: dict[int, float] = field(default_factory=dict)
     rtt_s: float | None = None
     share: float = THREE_HALVES_SHARE  # the serving engine's (SHARE_BY_ENGINE)
-    # the table stream's last delivery-rate samples (bytes/s)
+    # the table streams' last delivery-rate samples (bytes/s) taken while the link held
+    # them back, and those taken while the garbler had nothing to send (app-limited)
     rate_samples: deque[float] = field(default_factory=lambda: deque(maxlen=RATE_WINDOW))
+    bounds: deque[float] = field(default_factory=lambda: deque(maxlen=RATE_WINDOW))
 
     @property
     def link_rate(self) -> float | None:
         """The link's rate: the median of the last RATE_WINDOW samples. One stream's
         sample is its share of the link (garble-ahead streams several sessions at once
         when the link is their limit: three at a time read a 50 Mbit/s link as 11), so
-        each is scaled by the streams it shared the link with; the median keeps both the
-        tails that understate a link and the bursts that overstate it out."""
-        return statistics.median(self.rate_samples) if self.rate_samples else None
+        each adds the shares of the streams sending beside it (``streamed``); the median
+        keeps both the tails that understate a link and the bursts that overstate it
+        out. App-limited samples only bound the rate below, and a shaper lets a burst
+        through after an idle spell (three-halves at n = 256 over 2.5 Gbit/s read 4-9
+        Gbit/s when such samples could raise the estimate): they stand in only while no
+        stream has met the link."""
+        samples = self.rate_samples or self.bounds
+        return statistics.median(samples) if samples else None
 
     @classmethod
     def for_engine(cls, engine: str) -> LinkRates:
@@ -79,12 +87,14 @@ class LinkRates:
         if n_and > 0 and cpu_s > 0:
             self.and_per_s[scheme] = _blend(self.and_per_s.get(scheme), n_and / cpu_s)
 
-    def streamed(self, info: TcpInfo | None, streams: int = 1) -> None:
-        """The table stream's connection after a session, which shared the link with
-        ``streams`` - 1 others: its smoothed round trip, blended (a minimum kept forever
-        would hold a link that got slower, or a stream that moved to a farther replica,
-        to the old round trip and keep the garble-ahead too shallow), and its
-        delivery-rate sample times ``streams``, unless it only bounds the rate below."""
+    def streamed(self, info: TcpInfo | None, others: Sequence[TcpInfo | None] = ()) -> None:
+        """The table stream's connection after a session, and the ``others`` streaming
+        to the same evaluator at that moment: its smoothed round trip, blended (a minimum
+        kept forever would hold a link that got slower, or a stream that moved to a
+        farther replica, to the old round trip and keep the garble-ahead too shallow),
+        and a sample of the link: its delivery rate plus those of the others sending now
+        (tables in flight, their last sample not app-limited: one that is garbling its
+        next frame does not share the link, whatever its last sample says)."""
         if info is None:
             return
         rtt = info.rtt_s or info.min_rtt_s  # smoothed: what the tables meet now
@@ -92,12 +102,10 @@ class LinkRates:
             self.rtt_s = _blend(self.rtt_s, rtt)
         if not info.delivery_rate:
             return
-        sample = float(info.delivery_rate) * max(streams, 1)
-        known = self.link_rate
-        # an app-limited sample (the garbler had nothing to send) is only a lower bound:
-        # news while nothing is known or when it beats the estimate
-        if not info.app_limited or known is None or sample > known:
-            self.rate_samples.append(sample)
+        sample = float(info.delivery_rate) + sum(
+            float(o.delivery_rate) for o in others
+            if o is not None and o.delivery_rate and o.unacked and not o.app_limited)
+        (self.bounds if info.app_limited else self.rate_samples).append(sample)
 
     def rate_of(self, scheme: int) -> float | None:
         """AND/s garbling ``scheme``: measured, or derived from the other scheme's."""
@@ -196,17 +204,26 @@ def pick_scheme(report: dict[str, float] | None, cycle: Cycle | None = None,
     SWITCH_GAIN shorter. Three-halves' fewer bytes win where the link, not the garbler
     nor the client's own round trip, sets the pace; half-gates is left only once the
     evaluations have been waiting for tables (the link's rate, one stream's samples,
-    is too rough to decide on alone). Half-gates while nothing is measured."""
+    is too rough to decide on alone), on the link's word alone until three-halves has
+    run on the circuit. Half-gates while nothing is measured."""
     if not report or "link_mbit" not in report or "and_per_s_halfgates" not in report:
         return "halfgates"
     link = report["link_mbit"] * 1e6 / 8
     rates = {"halfgates": report["and_per_s_halfgates"],
              "threehalves": report.get("and_per_s_threehalves",
                                        report["and_per_s_halfgates"] * THREE_HALVES_SHARE)}
-    if current == "halfgates" and cycle is not None and cycle.other_s is not None \
-            and not cycle.tables_late:
-        return current  # tables in time: fewer bytes cannot make a session sooner
     other = "threehalves" if current == "halfgates" else "halfgates"
+    if current == "halfgates" and cycle is not None and cycle.other_s is not None:
+        if not cycle.tables_late:
+            return current  # tables in time: fewer bytes cannot make a session sooner
+        if other not in cycle.evaluate_s:
+            # never run on this circuit: its evaluation in the client's cycle cannot be
+            # told from half-gates' (at n = 256 over 2.5 Gbit/s the evaluation was mostly
+            # the tables' bytes, not the hashes the garbling rates compare), so the
+            # link and the garbler decide, and its own sessions then measure it
+            def pace(scheme: str) -> float:
+                return cycle.n_and * seconds_per_and(scheme_id(scheme), rates[scheme], link)
+            return other if pace(other) < (1 - SWITCH_GAIN) * pace(current) else current
     if session_seconds(other, rates, link, cycle) \
             < (1 - SWITCH_GAIN) * session_seconds(current, rates, link, cycle):
         return other

@@ -19,7 +19,7 @@ TCP_INFO = getattr(socket, "TCP_INFO", 11)
 _SIZE = 232  # through tcpi_bytes_retrans and a little beyond
 # name: (offset, struct format)
 _FIELDS = {
-    "rtt_us": (68, "I"), "snd_cwnd": (80, "I"), "total_retrans": (100, "I"),
+    "unacked": (24, "I"), "rtt_us": (68, "I"), "snd_cwnd": (80, "I"), "total_retrans": (100, "I"),
     "min_rtt_us": (148, "I"), "delivery_rate": (160, "Q"), "busy_us": (168, "Q"),
     "rwnd_limited_us": (176, "Q"), "sndbuf_limited_us": (184, "Q"), "bytes_sent": (200, "Q"),
 }
@@ -39,6 +39,7 @@ class TcpInfo:
     sndbuf_limited_s: float | None  # time this side's send buffer held it back
     bytes_sent: int | None
     total_retrans: int
+    unacked: int = 0  # segments in flight now: the connection is sending
 
 
 def read(sock: socket.socket | None) -> TcpInfo | None:
@@ -74,7 +75,8 @@ def parse(raw: bytes) -> TcpInfo | None:
                    app_limited=bool(raw[7] & 1), snd_cwnd=values["snd_cwnd"] or 0,
                    busy_s=seconds("busy_us"), rwnd_limited_s=seconds("rwnd_limited_us"),
                    sndbuf_limited_s=seconds("sndbuf_limited_us"),
-                   bytes_sent=values["bytes_sent"], total_retrans=values["total_retrans"] or 0)
+                   bytes_sent=values["bytes_sent"], total_retrans=values["total_retrans"] or 0,
+                   unacked=values["unacked"] or 0)
 
 
 def host_setting(name: str) -> list[int] | None:
