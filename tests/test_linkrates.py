@@ -100,6 +100,9 @@ def test_auto_tries_three_halves_where_tables_are_late_before_it_has_measured_it
     for _ in range(6):
         n256.invoked("halfgates", 0.68, 0.67, 0.25, ahead_s=1.4)
     assert pick_scheme(paper, n256) == "threehalves"
+    # tables late, but the client's own cycle (42 ms round trip, 10 ms evaluation) is
+    # longer than half-gates' 47 ms on the link: fewer bytes cannot make it sooner
+    assert pick_scheme(REGION, _cycle("halfgates", 0.0425, 0.010, 0.050)) == "halfgates"
     # once it has run, its own measure decides (here: an evaluation slower by far)
     n256.invoked("threehalves", 1.2, 1.19, 0.0, ahead_s=1.4)
     assert pick_scheme(paper, n256, current="threehalves") == "halfgates"

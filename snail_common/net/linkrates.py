@@ -179,13 +179,19 @@ class Cycle:
 SWITCH_GAIN = 0.1
 
 
+def _garbled_and_sent(scheme: str, n_and: int, rates: dict[str, float],
+                      link_bytes_per_s: float) -> float:
+    """Seconds to garble ``n_and`` AND gates in ``scheme`` and send their tables."""
+    return n_and * seconds_per_and(scheme_id(scheme), rates[scheme], link_bytes_per_s)
+
+
 def session_seconds(scheme: str, rates: dict[str, float], link_bytes_per_s: float,
                     cycle: Cycle | None) -> float:
     """A session's predicted pace in ``scheme``: the slowest of garbling it, sending its
     tables, and (once ``cycle`` has measured it) the client's cycle around it; per AND
     gate while the circuit is unknown. ``rates``: AND/s garbling each scheme."""
-    n_and = cycle.n_and if cycle is not None else 1
-    pace = n_and * seconds_per_and(scheme_id(scheme), rates[scheme], link_bytes_per_s)
+    pace = _garbled_and_sent(scheme, cycle.n_and if cycle is not None else 1, rates,
+                             link_bytes_per_s)
     if cycle is None or cycle.other_s is None or not cycle.evaluate_s:
         return pace
     if scheme in cycle.evaluate_s:
@@ -216,14 +222,16 @@ def pick_scheme(report: dict[str, float] | None, cycle: Cycle | None = None,
     if current == "halfgates" and cycle is not None and cycle.other_s is not None:
         if not cycle.tables_late:
             return current  # tables in time: fewer bytes cannot make a session sooner
-        if other not in cycle.evaluate_s:
-            # never run on this circuit: its evaluation in the client's cycle cannot be
-            # told from half-gates' (at n = 256 over 2.5 Gbit/s the evaluation was mostly
-            # the tables' bytes, not the hashes the garbling rates compare), so the
-            # link and the garbler decide, and its own sessions then measure it
-            def pace(scheme: str) -> float:
-                return cycle.n_and * seconds_per_and(scheme_id(scheme), rates[scheme], link)
-            return other if pace(other) < (1 - SWITCH_GAIN) * pace(current) else current
+        pace = {s: _garbled_and_sent(s, cycle.n_and, rates, link) for s in rates}
+        own = cycle.other_s + cycle.evaluate_s.get(current, 0.0)
+        if other not in cycle.evaluate_s and pace[current] > own \
+                and pace[other] < (1 - SWITCH_GAIN) * pace[current]:
+            # never run on this circuit, where the link (not the client's own cycle)
+            # sets the pace: its evaluation cannot be told from half-gates' (at n = 256
+            # over 2.5 Gbit/s it was mostly the tables' bytes, not the hashes the
+            # garbling rates compare), so the link and the garbler decide, and its own
+            # sessions then measure it
+            return other
     if session_seconds(other, rates, link, cycle) \
             < (1 - SWITCH_GAIN) * session_seconds(current, rates, link, cycle):
         return other
