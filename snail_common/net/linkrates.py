@@ -5,7 +5,7 @@ where the link is).
 The garbler measures both on its own sessions: its garbling rate per scheme (AND gates
 per CPU second of the thread that garbled them) and the table stream's delivery rate and
 round trip (``tcpinfo``: the kernel's samples; the rate is the median of the recent
-ones, each scaled by the streams that shared the link). It reports them in each
+ones, each a stream's plus those of the streams sending beside it). It reports them in each
 session's ``stats``; a client asking for ``auto`` picks the scheme of its next session
 from them and from its own cycle (``pick_scheme``), and every client sizes its
 garble-ahead depth from them (``ahead_depth``, ``deeper``).
