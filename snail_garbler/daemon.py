@@ -60,7 +60,7 @@ from snail_common.net.logs import event
 from snail_common.net.metrics import OK
 from snail_common.net.replicas import Address, Replicas
 from snail_common.net.service import Daemon, Options
-from snail_common.net.tcpinfo import TcpInfo, link_advice
+from snail_common.net.tcpinfo import link_advice
 from snail_common.net.tcpinfo import read as tcp_info
 
 from .lanes import LaneBatcher, LaneView
@@ -206,8 +206,8 @@ class GarblerDaemon(Daemon):
                 cpu_s = timeline.pop("cpu_s")
                 if lanes == 1:  # a lane's thread may have garbled for the others
                     self.rates.garbled(scheme, schedule.n_and, cpu_s)
-                self.rates.streamed(_tcp_info(evaluator), [
-                    _tcp_info(c) for c in self.table_streams if c.peer == evaluator.peer])
+                self.rates.streamed(tcp_info(evaluator.socket), [
+                    tcp_info(c.socket) for c in self.table_streams if c.peer == evaluator.peer])
                 self._advise()
                 timeline["request"] = t_wall
                 record["timeline"] = timeline
@@ -367,11 +367,6 @@ class GarblerDaemon(Daemon):
         self.idle.clear()
         await asyncio.gather(*(c.close(messages.make("bye")) for c in idle),
                              return_exceptions=True)
-
-
-def _tcp_info(conn: Connection) -> TcpInfo | None:
-    """The TCP_INFO of a connection's socket (None once it has gone)."""
-    return tcp_info(conn.transport.get_extra_info("socket")) if conn.transport else None
 
 
 def _timed_next(frames: Iterator[bytes | memoryview], clock: dict[str, float]

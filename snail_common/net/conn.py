@@ -194,13 +194,18 @@ class Connection(asyncio.BufferedProtocol):
         """Open with nothing unread: safe to reuse for a new session."""
         return not self._ended and self._inbox.empty()
 
+    @property
+    def socket(self) -> socket.socket | None:
+        """The transport's socket (None before it is made and once it has gone)."""
+        return self.transport.get_extra_info("socket") if self.transport else None
+
     def peer_closed(self) -> bool:
         """Whether the peer's end is closed, read off the socket now: a loop that was not
         running (a blocking runner between calls) has not yet taken in the FIN or reset,
         so ``ended`` is still False. Data queued ahead of a FIN hides it."""
         if self._ended:
             return True
-        sock = self.transport.get_extra_info("socket") if self.transport else None
+        sock = self.socket
         if sock is None:
             return False
         try:  # a duplicate descriptor: the loop's transport socket allows no recv
