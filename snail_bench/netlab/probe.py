@@ -41,8 +41,7 @@ def serve(host: str, port: int) -> None:
 
 
 def _swallow(conn: socket.socket) -> None:
-    """Take a blast; reply with the bytes and seconds after its first chunk, and the same
-    over the second half of that span (the rate once slow start is over)."""
+    """Take a blast; reply with the bytes and seconds of its rate span (``rate_span``)."""
     buf = bytearray(CHUNK)
     arrivals: list[tuple[float, int]] = []  # (time, bytes so far after the first chunk)
     total = 0
@@ -50,11 +49,21 @@ def _swallow(conn: socket.socket) -> None:
         if arrivals:
             total += got
         arrivals.append((time.perf_counter(), total))
-    first, last = (arrivals[0][0], arrivals[-1][0]) if arrivals else (0.0, 0.0)
-    middle = next(((t, n) for t, n in arrivals if t >= (first + last) / 2), (last, total))
-    conn.sendall(json.dumps({"bytes": total, "seconds": last - first,
-                             "late_bytes": total - middle[1],
-                             "late_seconds": last - middle[0]}).encode())
+    span_bytes, span_s = rate_span(arrivals)
+    conn.sendall(json.dumps({"bytes": span_bytes, "seconds": span_s}).encode())
+
+
+def rate_span(arrivals: list[tuple[float, int]]) -> tuple[int, float]:
+    """(bytes, seconds) a blast's rate is taken over, from its (time, bytes after the first
+    chunk) arrivals: the second half of the span after the first chunk, once slow start is
+    over; the whole span when its second half saw no arrival."""
+    if len(arrivals) < 2:
+        return 0, 0.0
+    (first, _), (last, total) = arrivals[0], arrivals[-1]
+    mid_t, mid_n = next((t, n) for t, n in arrivals if t >= (first + last) / 2)
+    if last > mid_t:
+        return total - mid_n, last - mid_t
+    return total, last - first
 
 
 def measure(host: str, port: int, pings: int, seconds: float) -> dict:
@@ -80,9 +89,7 @@ def measure(host: str, port: int, pings: int, seconds: float) -> dict:
         while data := conn.recv(4096):
             reply += data
     blast = json.loads(reply)
-    late = blast["late_seconds"] > 0
-    rate = ((blast["late_bytes"] if late else blast["bytes"]) * 8 / 1e6
-            / (blast["late_seconds"] if late else blast["seconds"] or float("inf")))
+    rate = blast["bytes"] * 8 / 1e6 / blast["seconds"] if blast["seconds"] > 0 else 0.0
     return {"rtt_ms": round(statistics.median(rtts), 3), "rate_mbit": round(rate, 1)}
 
 
