@@ -194,13 +194,11 @@ class GarblerDaemon(Daemon):
                     garbler = (make() if schedule.n_inputs < INLINE_INPUTS
                                else await self.work(make))
                 t_ready = time.monotonic()
-                self.counters["streaming"] += 1
-                self.table_streams.add(evaluator)
+                self._streaming(evaluator, True)
                 try:
                     sent, answered, timeline = await self._stream(evaluator, garbler, req)
                 finally:
-                    self.counters["streaming"] -= 1
-                    self.table_streams.discard(evaluator)
+                    self._streaming(evaluator, False)
                 t_streamed = time.monotonic()
                 lanes = getattr(garbler, "lanes", 1)
                 cpu_s = timeline.pop("cpu_s")
@@ -335,6 +333,15 @@ class GarblerDaemon(Daemon):
             raise ProtocolError(UNEXPECTED, f"the evaluator sent {msg['t']} mid-session")
         if msg["sid"] != sid:
             raise ProtocolError(UNEXPECTED, "the evaluator finished another session")
+
+    def _streaming(self, evaluator: Connection, under_way: bool) -> None:
+        """Start or end a session's table stream on its own (taken, never shared)
+        connection; the ``streaming`` gauge is the count of those under way."""
+        if under_way:
+            self.table_streams.add(evaluator)
+        else:
+            self.table_streams.discard(evaluator)
+        self.counters["streaming"] = len(self.table_streams)
 
     async def _acquire(self, req: dict[str, Any]) -> tuple[Address, Connection]:
         """A connection to the evaluator replica the request names (snail_common.net.

@@ -157,6 +157,31 @@ def test_two_clients_at_once_get_their_own_results(services):
         np.testing.assert_array_equal(out, cleartext(cid, bits))
 
 
+def test_the_garblers_streaming_gauge_counts_streams_under_way(services, runner):
+    circuit_id = "ops/fmul-x1024"  # ~1 M AND: long enough to be seen mid-stream
+    _, schedule = registry.compiled(circuit_id)
+    bits = np.random.default_rng(5).random(schedule.n_inputs) < 0.5
+
+    async def scenario():
+        watcher = AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
+                                    services.tls_dir)
+        client = AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
+                                   services.tls_dir, timeout=60)
+        try:
+            task = asyncio.ensure_future(client.run(circuit_id, bits))
+            seen = 0
+            while not task.done():
+                seen = max(seen, (await watcher.health("garbler"))["sessions"]["streaming"])
+                await asyncio.sleep(0.001)
+            await task
+            return seen, (await watcher.health("garbler"))["sessions"]["streaming"]
+        finally:
+            await asyncio.gather(client.close(), watcher.close())
+
+    seen, after = new_event_loop().run_until_complete(scenario())
+    assert (seen, after) == (1, 0)
+
+
 # ---- failures --------------------------------------------------------------------------
 def test_killed_garbler_gives_a_clear_error_and_frees_the_session(services, runner, cache,
                                                                    tmp_path):
