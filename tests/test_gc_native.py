@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from snail_common.arith import catalog
-from snail_common.circuit import evaluate_bits, registry
+from snail_common.circuit import CircuitBuilder, evaluate_bits, registry, schedule_circuit
 from snail_common.circuit.plan import plan_for
 from snail_common.gc import Evaluator, Garbler, active_input_labels, decode_output_labels
 from snail_common.gc import engine as engines
@@ -106,6 +106,41 @@ def test_native_is_numpy_bit_for_bit_on_every_family(circuit_id, scheme, isa):
               for e in engines.ENGINES}
     assert np.array_equal(active["native"], active["numpy"])
     out = decode_output_labels(delta, want_zero, active["native"])
+    assert np.array_equal(out, evaluate_bits(schedule, bits[None])[0])
+
+
+def _strided_circuit(lanes: int, layers: int):
+    """Chains over the columns of a (lanes, 4) input: each XOR reads a column at a step of
+    4 slots, and each NOT XORs one constant slot into every row."""
+    b = CircuitBuilder()
+    x = b.input("x", (lanes, 4), 1)[..., 0]
+    acc = x[:, 0]
+    for i in range(1, layers + 1):
+        u = b.xor(acc, x[:, i % 4])
+        acc = b.and_(u, b.not_(b.xor(acc, x[:, (i + 1) % 4])))
+    b.output("y", acc[:, None])
+    return b.build()
+
+
+def test_strided_and_repeated_columns_run_as_slices_bit_for_bit(isa):
+    schedule = schedule_circuit(_strided_circuit(1025, 5))  # odd: each AND op has a lone gate
+    program = build_program(plan_for(schedule), schedule.n_slots, 8192)
+    xor_rows = [program.rows[op[3] + 1 : op[3] + 1 + op[2]] for op in program.ops
+                if op[0] & 0xFF == 1]
+    assert xor_rows and all((rows[:, 0] == 0).all() for rows in xor_rows)  # no index lists
+    assert any((rows[:, 2] == 4).any() for rows in xor_rows)  # a column at a step of 4
+    assert any((rows[:, 2] == 0).any() for rows in xor_rows)  # one slot for every row
+    frames, zero = {}, {}
+    for engine in engines.ENGINES:
+        frames[engine], zero[engine], seed, delta = garble(schedule, engine, "halfgates",
+                                                           "strided")
+    assert digest(frames["native"]) == digest(frames["numpy"])
+    assert np.array_equal(zero["native"], zero["numpy"])
+    bits = np.random.default_rng(3).integers(0, 2, schedule.n_inputs).astype(bool)
+    labels = active_input_labels(seed, delta, bits)
+    active = {e: evaluate(schedule, e, labels, frames["numpy"]) for e in engines.ENGINES}
+    assert np.array_equal(active["native"], active["numpy"])
+    out = decode_output_labels(delta, zero["numpy"], active["native"])
     assert np.array_equal(out, evaluate_bits(schedule, bits[None])[0])
 
 

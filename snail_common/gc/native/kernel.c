@@ -292,64 +292,101 @@ TGTV INLINE void aes_v(const aes_key *ks, __m256i *x, int n) {
     for (int i = 0; i < n; i++) x[i] = _mm256_aesenclast_epi128(x[i], k);
 }
 
-/* hg_garble with VAES: a gate's four hashes in two registers, (A0, A1) and (B0, B1) */
+/* 256-bit forms of sigma, lsb_mask and tweak: two gates side by side, gate k in the low
+ * half, gate k+1 in the high one (every step stays within its 128-bit half) */
+TGTV INLINE __m256i sigma2(__m256i x) {
+    return _mm256_xor_si256(_mm256_shuffle_epi32(x, 0x4e),
+                            _mm256_blend_epi32(_mm256_setzero_si256(), x, 0x33));
+}
+
+TGTV INLINE __m256i lsb_mask2(__m256i x) {
+    __m256i bit = _mm256_and_si256(x, _mm256_set_epi64x(0, 1, 0, 1));
+    return _mm256_shuffle_epi32(_mm256_sub_epi64(_mm256_setzero_si256(), bit), 0x44);
+}
+
+/* (0, 2g) | (0, 2g + 2): the tweaks of A for gates g and g + 1 (B's: one more) */
+TGTV INLINE __m256i tweak2(uint64_t g) {
+    return _mm256_set_epi64x((long long)(2 * g + 2), 0, (long long)(2 * g), 0);
+}
+
+TGTV INLINE __m256i rows2(const uint64_t *lo, const uint64_t *hi) { return pair(LD(lo), LD(hi)); }
+
+TGTV INLINE void store2(uint64_t *lo, uint64_t *hi, __m256i v) {
+    ST(lo, _mm256_castsi256_si128(v));
+    ST(hi, high(v));
+}
+
+#define ONE_HI2 _mm256_set_epi64x(1, 0, 1, 0) /* (0, 1) in both halves */
+
+/* half-gates garbling with VAES of gates i .. i+g-1 (g even), two gates per register from
+ * loading their labels to storing their tables and outputs; the math is hg_garble's */
 TGTV INLINE void hg_garble_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
                              int64_t i, int j, int g, int64_t lane) {
-    __m128i a0[BATCH_V], b0[BATCH_V];
-    __m256i x[2 * BATCH_V], y[2 * BATCH_V];
-    __m128i d = c->delta[lane], sd = sigma(d);
+    __m256i a0[BATCH_V / 2], b0[BATCH_V / 2], xa[BATCH_V / 2], xb[BATCH_V / 2];
+    __m256i y[2 * BATCH_V];
+    __m128i d1 = c->delta[lane];
+    __m256i d = pair(d1, d1), sd = sigma2(d);
     int64_t w = 2 * lane;
-    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
-        uint64_t gate = first + (uint64_t)(i + k);
-        a0[k] = LD(ch->a[j + k] + w);
-        b0[k] = LD(ch->b[j + k] + w);
-        __m128i xa = _mm_xor_si128(sigma(a0[k]), tweak(2 * gate));
-        __m128i xb = _mm_xor_si128(sigma(b0[k]), tweak(2 * gate + 1));
-        y[2 * k] = x[2 * k] = pair(xa, _mm_xor_si128(xa, sd));
-        y[2 * k + 1] = x[2 * k + 1] = pair(xb, _mm_xor_si128(xb, sd));
+    int pairs = g / 2;
+    _Pragma("GCC unroll 4") for (int k = 0; k < pairs; k++) {
+        int q = j + 2 * k;
+        a0[k] = rows2(ch->a[q] + w, ch->a[q + 1] + w);
+        b0[k] = rows2(ch->b[q] + w, ch->b[q + 1] + w);
+        __m256i t = tweak2(first + (uint64_t)(i + 2 * k));
+        xa[k] = _mm256_xor_si256(sigma2(a0[k]), t);
+        xb[k] = _mm256_xor_si256(sigma2(b0[k]), _mm256_add_epi64(t, ONE_HI2));
+        y[4 * k] = xa[k];
+        y[4 * k + 1] = _mm256_xor_si256(xa[k], sd);
+        y[4 * k + 2] = xb[k];
+        y[4 * k + 3] = _mm256_xor_si256(xb[k], sd);
     }
     aes_v(&c->keys[lane], y, 2 * g);
-    __m128i *t = (__m128i *)(c->tables + lane * c->lane_words);
-    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
-        __m128i ya0 = _mm256_castsi256_si128(y[2 * k]), ya1 = high(y[2 * k]);
-        __m128i yb0 = _mm256_castsi256_si128(y[2 * k + 1]), yb1 = high(y[2 * k + 1]);
-        __m128i ta = _mm_xor_si128(_mm_xor_si128(ya0, ya1), sd);
-        __m128i tb = _mm_xor_si128(_mm_xor_si128(yb0, yb1), sd);
-        __m128i pa = lsb_mask(a0[k]), pb = lsb_mask(b0[k]);
-        __m128i tg = _mm_xor_si128(ta, _mm_and_si128(pb, d));
-        __m128i ya = _mm_xor_si128(_mm_xor_si128(ya0, _mm256_castsi256_si128(x[2 * k])),
-                                   _mm_and_si128(pa, tg));
-        __m128i yb = _mm_xor_si128(_mm_xor_si128(yb0, _mm256_castsi256_si128(x[2 * k + 1])),
-                                   _mm_and_si128(pb, tb));
-        ST(t + i + k, tg);
-        ST(t + n + i + k, _mm_xor_si128(tb, a0[k]));
-        ST(ch->o[j + k] + w, _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_set_epi64x(1, 0)));
+    uint64_t *t = c->tables + lane * c->lane_words;
+    _Pragma("GCC unroll 4") for (int k = 0; k < pairs; k++) {
+        int q = j + 2 * k;
+        __m256i ta = _mm256_xor_si256(_mm256_xor_si256(y[4 * k], y[4 * k + 1]), sd);
+        __m256i tb = _mm256_xor_si256(_mm256_xor_si256(y[4 * k + 2], y[4 * k + 3]), sd);
+        __m256i pa = lsb_mask2(a0[k]), pb = lsb_mask2(b0[k]);
+        __m256i tg = _mm256_xor_si256(ta, _mm256_and_si256(pb, d));
+        __m256i ya = _mm256_xor_si256(_mm256_xor_si256(y[4 * k], xa[k]), _mm256_and_si256(pa, tg));
+        __m256i yb = _mm256_xor_si256(_mm256_xor_si256(y[4 * k + 2], xb[k]),
+                                      _mm256_and_si256(pb, tb));
+        _mm256_storeu_si256((__m256i *)(t + 2 * (i + 2 * k)), tg);
+        _mm256_storeu_si256((__m256i *)(t + 2 * (n + i + 2 * k)), _mm256_xor_si256(tb, a0[k]));
+        store2(ch->o[q] + w, ch->o[q + 1] + w,
+               _mm256_xor_si256(_mm256_xor_si256(ya, yb), ONE_HI2));
     }
 }
 
-/* hg_evaluate with VAES: a gate's two hashes in one register, (A, B) */
+/* half-gates evaluation with VAES of gates i .. i+g-1 (g even), two gates per register */
 TGTV INLINE void hg_evaluate_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
                                int64_t i, int j, int g, int64_t lane) {
-    __m128i a[BATCH_V], b[BATCH_V];
-    __m256i x[BATCH_V], y[BATCH_V];
+    __m256i a[BATCH_V / 2], b[BATCH_V / 2], y[BATCH_V];
     int64_t w = 2 * lane;
-    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
-        uint64_t gate = first + (uint64_t)(i + k);
-        a[k] = LD(ch->a[j + k] + w);
-        b[k] = LD(ch->b[j + k] + w);
-        y[k] = x[k] = pair(_mm_xor_si128(sigma(a[k]), tweak(2 * gate)),
-                           _mm_xor_si128(sigma(b[k]), tweak(2 * gate + 1)));
+    int pairs = g / 2;
+    _Pragma("GCC unroll 4") for (int k = 0; k < pairs; k++) {
+        int q = j + 2 * k;
+        a[k] = rows2(ch->a[q] + w, ch->a[q + 1] + w);
+        b[k] = rows2(ch->b[q] + w, ch->b[q + 1] + w);
+        __m256i t = tweak2(first + (uint64_t)(i + 2 * k));
+        y[2 * k] = _mm256_xor_si256(sigma2(a[k]), t);
+        y[2 * k + 1] = _mm256_xor_si256(sigma2(b[k]), _mm256_add_epi64(t, ONE_HI2));
     }
+    __m256i x[BATCH_V];
+    _Pragma("GCC unroll 8") for (int k = 0; k < 2 * pairs; k++) x[k] = y[k];
     aes_v(&c->keys[lane], y, g);
-    const __m128i *t = (const __m128i *)(c->tables + lane * c->lane_words);
-    _Pragma("GCC unroll 8") for (int k = 0; k < g; k++) {
-        __m256i h = _mm256_xor_si256(y[k], x[k]); /* (H(A), H(B)) */
-        __m128i sa = lsb_mask(a[k]), sb = lsb_mask(b[k]);
-        __m128i tg = LD(t + i + k), te = LD(t + n + i + k);
-        __m128i ya = _mm_xor_si128(_mm256_castsi256_si128(h), _mm_and_si128(sa, tg));
-        __m128i yb = _mm_xor_si128(high(h), _mm_and_si128(sb, te));
-        __m128i o = _mm_xor_si128(_mm_xor_si128(ya, yb), _mm_and_si128(sb, a[k]));
-        ST(ch->o[j + k] + w, _mm_xor_si128(o, _mm_set_epi64x(1, 0)));
+    const uint64_t *t = c->tables + lane * c->lane_words;
+    _Pragma("GCC unroll 4") for (int k = 0; k < pairs; k++) {
+        int q = j + 2 * k;
+        __m256i sa = lsb_mask2(a[k]), sb = lsb_mask2(b[k]);
+        __m256i tg = _mm256_loadu_si256((const __m256i *)(t + 2 * (i + 2 * k)));
+        __m256i te = _mm256_loadu_si256((const __m256i *)(t + 2 * (n + i + 2 * k)));
+        __m256i ya = _mm256_xor_si256(_mm256_xor_si256(y[2 * k], x[2 * k]),
+                                      _mm256_and_si256(sa, tg));
+        __m256i yb = _mm256_xor_si256(_mm256_xor_si256(y[2 * k + 1], x[2 * k + 1]),
+                                      _mm256_and_si256(sb, _mm256_xor_si256(te, a[k])));
+        store2(ch->o[q] + w, ch->o[q + 1] + w,
+               _mm256_xor_si256(_mm256_xor_si256(ya, yb), ONE_HI2));
     }
 }
 
@@ -498,10 +535,12 @@ TGTV static void hg_and_op_v(ctx_t *c, const rows_t *r, int64_t dst, int64_t n,
         out_ptrs(c, &r[0], dst, i0, m, ch.o);
         for (int64_t lane = 0; lane < c->lanes; lane++) {
             if (c->mode == MODE_GARBLE) {
-#define HG_GV(i, j, g) hg_garble_v(c, &ch, n, first, i, j, g, lane)
+#define HG_GV(i, j, g) if ((g) > 1) hg_garble_v(c, &ch, n, first, i, j, g, lane); \
+                          else hg_garble(c, &ch, n, first, i, j, g, lane)
                 BATCHED(HG_GARBLE_BATCH_V, HG_GV);
             } else {
-#define HG_EV(i, j, g) hg_evaluate_v(c, &ch, n, first, i, j, g, lane)
+#define HG_EV(i, j, g) if ((g) > 1) hg_evaluate_v(c, &ch, n, first, i, j, g, lane); \
+                          else hg_evaluate(c, &ch, n, first, i, j, g, lane)
                 BATCHED(HG_EVAL_BATCH_V, HG_EV);
             }
         }
@@ -598,13 +637,91 @@ TGT INLINE void ragged_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, i
     }
 }
 
+/* the loop of ragged_rows for one lane and int64 term and start lists (the plan's kinds),
+ * out row i at OUT(i): every index kind fixed outside the loop */
+#define RAGGED_ONE_LANE(OUT)                                                            \
+    for (int64_t i = r0; i < r1; i++) {                                                 \
+        int64_t lo = starts[i], hi = i + 1 < n ? starts[i + 1] : nterms;               \
+        __m128i acc = LD(v + 2 * terms[lo]);                                            \
+        for (int64_t t = lo + 1; t < hi; t++) acc = _mm_xor_si128(acc, LD(v + 2 * terms[t])); \
+        ST(OUT, acc);                                                                   \
+    }
+
+/* ragged_rows where RAGGED_ONE_LANE applies: 1 when it ran the rows, 0 when the caller
+ * must */
+TGT INLINE int ragged_one_lane(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t r0,
+                               int64_t r1, int64_t nterms) {
+    if (c->width != 2 || r[1].kind != R_I64 || r[2].kind != R_I64) return 0;
+    const int64_t *terms = (const int64_t *)(intptr_t)r[1].a;
+    const int64_t *starts = (const int64_t *)(intptr_t)r[2].a;
+    const uint64_t *v = c->values;
+    if (dst >= 0) {
+        uint64_t *o = c->scratch + 2 * dst;
+        RAGGED_ONE_LANE(o + 2 * i);
+    } else if (r[0].kind == R_SLICE) {
+        uint64_t *o = c->values + 2 * r[0].a;
+        int64_t os = 2 * r[0].b;
+        RAGGED_ONE_LANE(o + os * i);
+    } else if (r[0].kind == R_I32) {
+        const int32_t *q = (const int32_t *)(intptr_t)r[0].a;
+        RAGGED_ONE_LANE(c->values + 2 * (int64_t)q[i]);
+    } else {
+        const int64_t *q = (const int64_t *)(intptr_t)r[0].a;
+        RAGGED_ONE_LANE(c->values + 2 * q[i]);
+    }
+    return 1;
+}
+
+#define SLICE_COLUMNS 4 /* up to this many columns, a one-lane op of slices loops on strides */
+
+/* rows r0 .. r1-1 of a one-lane XOR op of K columns whose rows are all slices: each row's
+ * address is its slice's start plus i times its step, no list of row addresses */
+TGT INLINE void xor_slices(__m128i *o, int64_t os, const __m128i **p, const int64_t *ps,
+                           int64_t r0, int64_t r1, int K) {
+    const __m128i *p0 = p[0], *p1 = p[K > 1], *p2 = p[K > 2 ? 2 : 0], *p3 = p[K > 3 ? 3 : 0];
+    int64_t s0 = ps[0], s1 = ps[K > 1], s2 = ps[K > 2 ? 2 : 0], s3 = ps[K > 3 ? 3 : 0];
+    for (int64_t i = r0; i < r1; i++) {
+        __m128i acc = LD(p0 + i * s0);
+        if (K > 1) acc = _mm_xor_si128(acc, LD(p1 + i * s1));
+        if (K > 2) acc = _mm_xor_si128(acc, LD(p2 + i * s2));
+        if (K > 3) acc = _mm_xor_si128(acc, LD(p3 + i * s3));
+        ST(o + i * os, acc);
+    }
+}
+
+/* xor_slices where it applies (one lane, at most SLICE_COLUMNS columns, every row
+ * descriptor a slice): 1 when it ran the rows, 0 when the caller must */
+TGT INLINE int xor_op_of_slices(ctx_t *c, const rows_t *r, int64_t dst, int64_t r0,
+                                int64_t r1, int64_t k) {
+    if (c->width != 2 || k < 1 || k > SLICE_COLUMNS || (dst < 0 && r[0].kind != R_SLICE))
+        return 0;
+    const __m128i *p[SLICE_COLUMNS];
+    int64_t ps[SLICE_COLUMNS];
+    for (int64_t col = 0; col < k; col++) {
+        if (r[1 + col].kind != R_SLICE) return 0;
+        p[col] = (const __m128i *)c->values + r[1 + col].a;
+        ps[col] = r[1 + col].b;
+    }
+    __m128i *o = dst < 0 ? (__m128i *)c->values + r[0].a : (__m128i *)c->scratch + dst;
+    int64_t os = dst < 0 ? r[0].b : 1;
+    switch (k) {
+    case 1: xor_slices(o, os, p, ps, r0, r1, 1); break;
+    case 2: xor_slices(o, os, p, ps, r0, r1, 2); break;
+    case 3: xor_slices(o, os, p, ps, r0, r1, 3); break;
+    default: xor_slices(o, os, p, ps, r0, r1, 4);
+    }
+    return 1;
+}
+
 /* rows r0 .. r1-1 of a linear op of n rows */
 TGT static void linear_op(ctx_t *c, int64_t kind, const rows_t *r, int64_t dst, int64_t n,
                           int64_t k, int64_t aux, int64_t r0, int64_t r1) {
     if (kind == OP_XOR) {
+        if (xor_op_of_slices(c, r, dst, r0, r1, k)) return;
         if (c->width == 2) xor_rows(c, r, dst, r0, r1, k, 2);
         else xor_rows(c, r, dst, r0, r1, k, c->width);
     } else if (kind == OP_RAGGED) {
+        if (ragged_one_lane(c, r, dst, n, r0, r1, aux)) return;
         if (c->width == 2) ragged_rows(c, r, dst, n, r0, r1, aux, 2);
         else ragged_rows(c, r, dst, n, r0, r1, aux, c->width);
     } else { /* PUBLISH */

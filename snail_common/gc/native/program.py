@@ -84,7 +84,11 @@ class _Builder:
             raise ValueError(f"a plan index list leaves 0 .. {limit - 1}")
 
     def row(self, rows: Rows) -> None:
-        """Append the descriptor of checked ``rows``."""
+        """Append the descriptor of checked ``rows``: an index list with a constant step
+        (a strided column, or one slot repeated) becomes a slice, which the kernel reads
+        without loading an index per row."""
+        if not isinstance(rows, slice):
+            rows = _as_run(rows)
         if isinstance(rows, slice):
             self.rows.append((R_SLICE, rows.start, 0 if rows.step is None else rows.step))
             return
@@ -93,6 +97,19 @@ class _Builder:
 
     def op(self, kind: int, n: int, first: int, rows: int, dst: int, aux: int = 0) -> None:
         self.ops.append((kind, n, first, rows, dst, aux))
+
+
+def _as_run(idx: np.ndarray) -> Rows:
+    """``idx`` as slice(first, ..., step) when its steps are one constant >= 0 (step 0:
+    slice(first, first + 1) with no step, the kernel's repeated slot), else ``idx``."""
+    if len(idx) < 2:
+        return idx
+    first, step = int(idx[0]), int(idx[1]) - int(idx[0])
+    if step < 0 or int(idx[-1]) != first + step * (len(idx) - 1) \
+            or not np.all(np.diff(idx) == step):
+        return idx
+    return slice(first, first + 1) if step == 0 else \
+        slice(first, first + step * (len(idx) - 1) + 1, step)
 
 
 def _part_view(rows: Rows, k: int, m: int) -> Rows:
