@@ -179,20 +179,26 @@ typedef struct {
 INLINE void row_ptrs(const rows_t *r, int64_t i0, int64_t m, uint64_t *values, int64_t width,
                      uint64_t **out) {
     switch (r->kind) {
-    case R_SLICE: {
-        uint64_t *p = values + (r->a + i0 * r->b) * width;
-        int64_t step = r->b * width;
-        for (int64_t k = 0; k < m; k++) out[k] = p + k * step;
+    case R_SLICE: { /* pointer steps, not products: vectorized, a product is 3 multiplies */
+        uintptr_t p = (uintptr_t)(values + (r->a + i0 * r->b) * width);
+        uintptr_t step = (uintptr_t)(r->b * width) * sizeof(uint64_t);
+        for (int64_t k = 0; k < m; k++, p += step) out[k] = (uint64_t *)p;
         break;
     }
-    case R_I32: {
+    case R_I32: { /* one lane (width 2) apart: a shift, not a product */
         const int32_t *q = (const int32_t *)(intptr_t)r->a + i0;
-        for (int64_t k = 0; k < m; k++) out[k] = values + (int64_t)q[k] * width;
+        if (width == 2)
+            for (int64_t k = 0; k < m; k++) out[k] = values + 2 * (int64_t)q[k];
+        else
+            for (int64_t k = 0; k < m; k++) out[k] = values + (int64_t)q[k] * width;
         break;
     }
     default: {
         const int64_t *q = (const int64_t *)(intptr_t)r->a + i0;
-        for (int64_t k = 0; k < m; k++) out[k] = values + q[k] * width;
+        if (width == 2)
+            for (int64_t k = 0; k < m; k++) out[k] = values + 2 * q[k];
+        else
+            for (int64_t k = 0; k < m; k++) out[k] = values + q[k] * width;
     }
     }
 }
@@ -204,7 +210,9 @@ INLINE void out_ptrs(ctx_t *c, const rows_t *out, int64_t dst, int64_t i0, int64
         row_ptrs(out, i0, m, c->values, c->width, p);
         return;
     }
-    for (int64_t k = 0; k < m; k++) p[k] = c->scratch + (dst + i0 + k) * c->width;
+    uintptr_t q = (uintptr_t)(c->scratch + (dst + i0) * c->width);
+    uintptr_t step = (uintptr_t)c->width * sizeof(uint64_t);
+    for (int64_t k = 0; k < m; k++, q += step) p[k] = (uint64_t *)q;
 }
 
 typedef struct {
