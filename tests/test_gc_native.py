@@ -361,6 +361,56 @@ def test_ops_cut_across_two_threads_are_numpy_bit_for_bit(scheme, isa, monkeypat
     assert np.array_equal(active, evaluate(schedule, "numpy", labels, frames))
 
 
+def test_runs_from_several_threads_share_one_helper_bit_for_bit(monkeypatch):
+    """Four Python threads garble and evaluate wide runs at once with two kernel threads
+    each: the one holding the process's helper thread shares its ops, the others run
+    alone, and every run is numpy's bit for bit."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from snail_bench.engine import _layered_circuit
+    from snail_common.circuit import schedule_circuit
+
+    schedule = schedule_circuit(_layered_circuit(12288, 3))
+    tags = [f"helper-{k}" for k in range(4)]
+    want = {tag: garble(schedule, "numpy", "halfgates", tag) for tag in tags}
+    bits = np.random.default_rng(5).integers(0, 2, schedule.n_inputs).astype(bool)
+    monkeypatch.setenv("SNAIL_KERNEL_THREADS", "2")
+
+    def run(tag):
+        frames, zero, seed, delta = garble(schedule, "native", "halfgates", tag)
+        labels = active_input_labels(seed, delta, bits)
+        return digest(frames), zero, evaluate(schedule, "native", labels, frames, 200_003)
+
+    with ThreadPoolExecutor(4) as pool:
+        got = dict(zip(tags, pool.map(run, tags), strict=True))
+    for tag in tags:
+        frames, zero, seed, delta = want[tag]
+        labels = active_input_labels(seed, delta, bits)
+        assert got[tag][0] == digest(frames) and np.array_equal(got[tag][1], zero)
+        assert np.array_equal(got[tag][2], evaluate(schedule, "numpy", labels, frames))
+
+
+def test_a_forked_child_starts_a_helper_of_its_own(monkeypatch):
+    """The parent's helper thread does not exist in a forked child: the child's first
+    two-thread run starts its own (it would wait forever for the parent's)."""
+    import multiprocessing as mp
+
+    from snail_bench.engine import _layered_circuit
+    from snail_common.circuit import schedule_circuit
+
+    schedule = schedule_circuit(_layered_circuit(12288, 2))
+    monkeypatch.setenv("SNAIL_KERNEL_THREADS", "2")
+    parent = digest(garble(schedule, "native", "halfgates", "fork")[0])  # the helper starts
+    ctx = mp.get_context("fork")
+    with ctx.Pool(1) as pool:
+        child = pool.apply_async(_digest_of_a_run, (schedule, "fork")).get(timeout=60)
+    assert child == parent
+
+
+def _digest_of_a_run(schedule, tag):
+    return digest(garble(schedule, "native", "halfgates", tag)[0])
+
+
 def test_a_direct_piece_that_reads_what_it_writes_stays_on_one_thread():
     """Order matters in such a piece (a row may read a slot before a later row writes it):
     it is never marked for cutting, while a piece writing other slots is."""

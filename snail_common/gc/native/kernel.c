@@ -838,10 +838,73 @@ TGT static void run_part(job_t *jb, int tid) {
     }
 }
 
-static void *worker(void *arg) {
-    job_t *jb = ((job_t **)arg)[0];
-    run_part(jb, (int)(intptr_t)((void **)arg)[1]);
+/* One helper thread per process, started on first use and kept: a call that cuts its ops
+ * hands it the job rather than create a thread (tens of microseconds a call). Of calls
+ * made from several threads at once, the one that holds the helper shares its ops, the
+ * others run theirs alone. A forked child starts a helper of its own. */
+static struct {
+    pthread_mutex_t lock; /* held by the call that has the helper */
+    atomic_int posted;    /* jobs handed over so far */
+    atomic_int done;      /* jobs the helper has finished */
+    job_t *job;
+    pid_t pid; /* the process the helper runs in */
+} helper = {.lock = PTHREAD_MUTEX_INITIALIZER};
+
+static void futex_wait(atomic_int *addr, int value) {
+    syscall(SYS_futex, addr, FUTEX_WAIT_PRIVATE, value, NULL, NULL, 0);
+}
+
+static void futex_wake(atomic_int *addr) {
+    syscall(SYS_futex, addr, FUTEX_WAKE_PRIVATE, INT_MAX, NULL, NULL, 0);
+}
+
+static void *helper_main(void *arg) {
+    int seen = (int)(intptr_t)arg;
+    for (;;) {
+        int now;
+        while ((now = atomic_load(&helper.posted)) == seen) futex_wait(&helper.posted, seen);
+        seen = now;
+        run_part(helper.job, 1);
+        atomic_store(&helper.done, seen);
+        futex_wake(&helper.done);
+    }
     return NULL;
+}
+
+/* 1 when this call now holds the helper (started if this process has none yet) */
+static int helper_take(void) {
+    if (pthread_mutex_trylock(&helper.lock)) return 0;
+    if (helper.pid == getpid()) return 1;
+    pthread_attr_t attr;
+    pthread_t th;
+    int seen = atomic_load(&helper.posted), ok = 0;
+    atomic_store(&helper.done, seen);
+    if (pthread_attr_init(&attr) == 0) {
+        ok = pthread_attr_setdetachstate(&attr, PTHREAD_CREATE_DETACHED) == 0
+             && pthread_create(&th, &attr, helper_main, (void *)(intptr_t)seen) == 0;
+        pthread_attr_destroy(&attr);
+    }
+    if (!ok) {
+        pthread_mutex_unlock(&helper.lock);
+        return 0;
+    }
+    helper.pid = getpid();
+    return 1;
+}
+
+/* run `jb` on this thread and the helper; back once both are done with it */
+static void run_with_helper(job_t *jb) {
+    helper.job = jb;
+    int seq = atomic_load(&helper.posted) + 1;
+    atomic_store(&helper.posted, seq);
+    futex_wake(&helper.posted);
+    run_part(jb, 0);
+    for (int spin = 0; atomic_load(&helper.done) != seq; spin++) {
+        int done = atomic_load(&helper.done);
+        if (spin < SPIN_BEFORE_SLEEP) _mm_pause();
+        else if (done != seq) futex_wait(&helper.done, done);
+    }
+    pthread_mutex_unlock(&helper.lock);
 }
 
 /* ---------------------------------------------------------------- entry point */
@@ -894,19 +957,14 @@ TGT int snail_run(int mode, int scheme, const int64_t *ops, int64_t lo, int64_t 
     atomic_init(&jb.next, 0);
     jb.bar.reset = &jb.next;
     jb.bar.parties = jb.threads;
-    pthread_t th[MAX_THREADS];
-    void *args[MAX_THREADS][2];
-    _Static_assert(MAX_THREADS == 2, "a failed pthread_create below falls back to one");
-    int started = 1;
-    if (jb.threads == 2) {
+    _Static_assert(MAX_THREADS == 2, "one helper thread beside the caller");
+    if (jb.threads == 2 && helper_take()) {
         c[1] = c[0];
         jb.ctx[1] = &c[1];
-        args[1][0] = &jb;
-        args[1][1] = (void *)(intptr_t)1;
-        if (pthread_create(&th[1], NULL, worker, args[1]) == 0) started = 2;
-        else jb.threads = jb.bar.parties = 1; /* no thread to be had: this one runs all */
+        run_with_helper(&jb);
+        return 0;
     }
+    jb.threads = jb.bar.parties = 1; /* one thread, or the helper is busy: this one runs all */
     run_part(&jb, 0);
-    if (started == 2) pthread_join(th[1], NULL);
     return 0;
 }
