@@ -157,16 +157,22 @@ def test_two_clients_at_once_get_their_own_results(services):
         np.testing.assert_array_equal(out, cleartext(cid, bits))
 
 
+def _watcher_and_client(services, garbler_addr: str):
+    """A runner that asks the services for health, and one that runs sessions through the
+    garbler at ``garbler_addr``."""
+    return (AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
+                              services.tls_dir),
+            AsyncSecureRunner(garbler_addr, services.evaluator_addr, services.tls_dir,
+                              timeout=60))
+
+
 def test_the_garblers_streaming_gauge_counts_streams_under_way(services, runner):
     circuit_id = "ops/fmul-x1024"  # ~1 M AND: long enough to be seen mid-stream
     _, schedule = registry.compiled(circuit_id)
     bits = np.random.default_rng(5).random(schedule.n_inputs) < 0.5
 
     async def scenario():
-        watcher = AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
-                                    services.tls_dir)
-        client = AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
-                                   services.tls_dir, timeout=60)
+        watcher, client = _watcher_and_client(services, services.garbler_addr)
         try:
             task = asyncio.ensure_future(client.run(circuit_id, bits))
             seen = 0
@@ -194,10 +200,7 @@ def test_killed_garbler_gives_a_clear_error_and_frees_the_session(services, runn
     before = runner.health("evaluator")["sessions"]
 
     async def scenario():
-        watcher = AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
-                                    services.tls_dir)
-        client = AsyncSecureRunner(victim.address, services.evaluator_addr,
-                                   services.tls_dir, timeout=60)
+        watcher, client = _watcher_and_client(services, victim.address)
         try:
             task = asyncio.ensure_future(client.run(circuit_id, bits))
             while (await watcher.health("evaluator"))["sessions"]["streaming"] == 0:

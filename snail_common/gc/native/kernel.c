@@ -326,6 +326,17 @@ TGTV INLINE void store2(uint64_t *lo, uint64_t *hi, __m256i v) {
 
 #define ONE_HI2 _mm256_set_epi64x(1, 0, 1, 0) /* (0, 1) in both halves */
 
+/* the labels A, B of chunk rows q, q+1 (lane at word w) and their hashes' inputs
+ * sigma(A) ^ tweak(2 gate), sigma(B) ^ tweak(2 gate + 1), `gate` the first's number */
+TGTV INLINE void pair_inputs(const chunk_t *ch, int q, int64_t w, uint64_t gate, __m256i *a,
+                             __m256i *b, __m256i *xa, __m256i *xb) {
+    *a = rows2(ch->a[q] + w, ch->a[q + 1] + w);
+    *b = rows2(ch->b[q] + w, ch->b[q + 1] + w);
+    __m256i t = tweak2(gate);
+    *xa = _mm256_xor_si256(sigma2(*a), t);
+    *xb = _mm256_xor_si256(sigma2(*b), _mm256_add_epi64(t, ONE_HI2));
+}
+
 /* half-gates garbling with VAES of gates i .. i+g-1 (g even), two gates per register from
  * loading their labels to storing their tables and outputs; the math is hg_garble's */
 TGTV INLINE void hg_garble_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
@@ -337,12 +348,8 @@ TGTV INLINE void hg_garble_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t fi
     int64_t w = 2 * lane;
     int pairs = g / 2;
     _Pragma("GCC unroll 4") for (int k = 0; k < pairs; k++) {
-        int q = j + 2 * k;
-        a0[k] = rows2(ch->a[q] + w, ch->a[q + 1] + w);
-        b0[k] = rows2(ch->b[q] + w, ch->b[q + 1] + w);
-        __m256i t = tweak2(first + (uint64_t)(i + 2 * k));
-        xa[k] = _mm256_xor_si256(sigma2(a0[k]), t);
-        xb[k] = _mm256_xor_si256(sigma2(b0[k]), _mm256_add_epi64(t, ONE_HI2));
+        pair_inputs(ch, j + 2 * k, w, first + (uint64_t)(i + 2 * k), &a0[k], &b0[k], &xa[k],
+                    &xb[k]);
         y[4 * k] = xa[k];
         y[4 * k + 1] = _mm256_xor_si256(xa[k], sd);
         y[4 * k + 2] = xb[k];
@@ -373,12 +380,8 @@ TGTV INLINE void hg_evaluate_v(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t 
     int64_t w = 2 * lane;
     int pairs = g / 2;
     _Pragma("GCC unroll 4") for (int k = 0; k < pairs; k++) {
-        int q = j + 2 * k;
-        a[k] = rows2(ch->a[q] + w, ch->a[q + 1] + w);
-        b[k] = rows2(ch->b[q] + w, ch->b[q + 1] + w);
-        __m256i t = tweak2(first + (uint64_t)(i + 2 * k));
-        y[2 * k] = _mm256_xor_si256(sigma2(a[k]), t);
-        y[2 * k + 1] = _mm256_xor_si256(sigma2(b[k]), _mm256_add_epi64(t, ONE_HI2));
+        pair_inputs(ch, j + 2 * k, w, first + (uint64_t)(i + 2 * k), &a[k], &b[k], &y[2 * k],
+                    &y[2 * k + 1]);
     }
     __m256i x[BATCH_V];
     _Pragma("GCC unroll 8") for (int k = 0; k < 2 * pairs; k++) x[k] = y[k];
