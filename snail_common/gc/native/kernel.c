@@ -648,79 +648,97 @@ TGT INLINE void ragged_rows(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, i
     }
 }
 
-/* the loop of ragged_rows for one lane and int64 term and start lists (the plan's kinds),
- * out row i at OUT(i): every index kind fixed outside the loop */
-#define RAGGED_ONE_LANE(OUT)                                                            \
+/* the loop of ragged_rows for int64 term and start lists (the plan's kinds), `w` words a
+ * row (2 a lane), out row i at OUT(i): every index kind fixed outside the loop */
+#define RAGGED_FIXED(OUT)                                                               \
     for (int64_t i = r0; i < r1; i++) {                                                 \
         int64_t lo = starts[i], hi = i + 1 < n ? starts[i + 1] : nterms;               \
-        __m128i acc = LD(v + 2 * terms[lo]);                                            \
-        for (int64_t t = lo + 1; t < hi; t++) acc = _mm_xor_si128(acc, LD(v + 2 * terms[t])); \
-        ST(OUT, acc);                                                                   \
+        uint64_t *out = (OUT);                                                          \
+        for (int64_t l = 0; l < w; l += 2) {                                            \
+            __m128i acc = LD(v + w * terms[lo] + l);                                    \
+            for (int64_t t = lo + 1; t < hi; t++)                                       \
+                acc = _mm_xor_si128(acc, LD(v + w * terms[t] + l));                     \
+            ST(out + l, acc);                                                           \
+        }                                                                               \
     }
 
-/* ragged_rows where RAGGED_ONE_LANE applies: 1 when it ran the rows, 0 when the caller
- * must */
-TGT INLINE int ragged_one_lane(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t r0,
-                               int64_t r1, int64_t nterms) {
-    if (c->width != 2 || r[1].kind != R_I64 || r[2].kind != R_I64) return 0;
+TGT INLINE void ragged_fixed_w(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t r0,
+                               int64_t r1, int64_t nterms, int64_t w) {
     const int64_t *terms = (const int64_t *)(intptr_t)r[1].a;
     const int64_t *starts = (const int64_t *)(intptr_t)r[2].a;
     const uint64_t *v = c->values;
     if (dst >= 0) {
-        uint64_t *o = c->scratch + 2 * dst;
-        RAGGED_ONE_LANE(o + 2 * i);
+        uint64_t *o = c->scratch + w * dst;
+        RAGGED_FIXED(o + w * i);
     } else if (r[0].kind == R_SLICE) {
-        uint64_t *o = c->values + 2 * r[0].a;
-        int64_t os = 2 * r[0].b;
-        RAGGED_ONE_LANE(o + os * i);
+        uint64_t *o = c->values + w * r[0].a;
+        int64_t os = w * r[0].b;
+        RAGGED_FIXED(o + os * i);
     } else if (r[0].kind == R_I32) {
         const int32_t *q = (const int32_t *)(intptr_t)r[0].a;
-        RAGGED_ONE_LANE(c->values + 2 * (int64_t)q[i]);
+        RAGGED_FIXED(c->values + w * (int64_t)q[i]);
     } else {
         const int64_t *q = (const int64_t *)(intptr_t)r[0].a;
-        RAGGED_ONE_LANE(c->values + 2 * q[i]);
+        RAGGED_FIXED(c->values + w * q[i]);
     }
+}
+
+/* ragged_rows with RAGGED_FIXED where the lists are int64 (one lane: the row's width a
+ * constant): 1 when it ran the rows, 0 when the caller must */
+TGT INLINE int ragged_fixed(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, int64_t r0,
+                            int64_t r1, int64_t nterms) {
+    if (r[1].kind != R_I64 || r[2].kind != R_I64) return 0;
+    if (c->width == 2) ragged_fixed_w(c, r, dst, n, r0, r1, nterms, 2);
+    else ragged_fixed_w(c, r, dst, n, r0, r1, nterms, c->width);
     return 1;
 }
 
-#define SLICE_COLUMNS 4 /* up to this many columns, a one-lane op of slices loops on strides */
+#define SLICE_COLUMNS 4 /* up to this many columns, an XOR op of slices loops on strides */
 
-/* rows r0 .. r1-1 of a one-lane XOR op of K columns whose rows are all slices: each row's
- * address is its slice's start plus i times its step, no list of row addresses */
+/* rows r0 .. r1-1 of an XOR op of K columns whose rows are all slices, L lanes (16-byte
+ * blocks) a row: each row's address is its slice's start plus i times its step, no list
+ * of row addresses */
 TGT INLINE void xor_slices(__m128i *o, int64_t os, const __m128i **p, const int64_t *ps,
-                           int64_t r0, int64_t r1, int K) {
+                           int64_t r0, int64_t r1, int K, int64_t L) {
     const __m128i *p0 = p[0], *p1 = p[K > 1], *p2 = p[K > 2 ? 2 : 0], *p3 = p[K > 3 ? 3 : 0];
     int64_t s0 = ps[0], s1 = ps[K > 1], s2 = ps[K > 2 ? 2 : 0], s3 = ps[K > 3 ? 3 : 0];
-    for (int64_t i = r0; i < r1; i++) {
-        __m128i acc = LD(p0 + i * s0);
-        if (K > 1) acc = _mm_xor_si128(acc, LD(p1 + i * s1));
-        if (K > 2) acc = _mm_xor_si128(acc, LD(p2 + i * s2));
-        if (K > 3) acc = _mm_xor_si128(acc, LD(p3 + i * s3));
-        ST(o + i * os, acc);
-    }
+    for (int64_t i = r0; i < r1; i++)
+        for (int64_t l = 0; l < L; l++) {
+            __m128i acc = LD(p0 + i * s0 + l);
+            if (K > 1) acc = _mm_xor_si128(acc, LD(p1 + i * s1 + l));
+            if (K > 2) acc = _mm_xor_si128(acc, LD(p2 + i * s2 + l));
+            if (K > 3) acc = _mm_xor_si128(acc, LD(p3 + i * s3 + l));
+            ST(o + i * os + l, acc);
+        }
 }
 
-/* xor_slices where it applies (one lane, at most SLICE_COLUMNS columns, every row
- * descriptor a slice): 1 when it ran the rows, 0 when the caller must */
+#define XOR_SLICES(L)                                                 \
+    switch (k) {                                                      \
+    case 1: xor_slices(o, os, p, ps, r0, r1, 1, L); break;            \
+    case 2: xor_slices(o, os, p, ps, r0, r1, 2, L); break;            \
+    case 3: xor_slices(o, os, p, ps, r0, r1, 3, L); break;            \
+    default: xor_slices(o, os, p, ps, r0, r1, 4, L);                  \
+    }
+
+/* xor_slices where it applies (at most SLICE_COLUMNS columns, every row descriptor a
+ * slice; one lane: the row's width a constant): 1 when it ran the rows, 0 when the caller
+ * must */
 TGT INLINE int xor_op_of_slices(ctx_t *c, const rows_t *r, int64_t dst, int64_t r0,
                                 int64_t r1, int64_t k) {
-    if (c->width != 2 || k < 1 || k > SLICE_COLUMNS || (dst < 0 && r[0].kind != R_SLICE))
-        return 0;
+    if (k < 1 || k > SLICE_COLUMNS || (dst < 0 && r[0].kind != R_SLICE)) return 0;
+    int64_t lanes = c->width / 2;
     const __m128i *p[SLICE_COLUMNS];
     int64_t ps[SLICE_COLUMNS];
     for (int64_t col = 0; col < k; col++) {
         if (r[1 + col].kind != R_SLICE) return 0;
-        p[col] = (const __m128i *)c->values + r[1 + col].a;
-        ps[col] = r[1 + col].b;
+        p[col] = (const __m128i *)c->values + lanes * r[1 + col].a;
+        ps[col] = lanes * r[1 + col].b;
     }
-    __m128i *o = dst < 0 ? (__m128i *)c->values + r[0].a : (__m128i *)c->scratch + dst;
-    int64_t os = dst < 0 ? r[0].b : 1;
-    switch (k) {
-    case 1: xor_slices(o, os, p, ps, r0, r1, 1); break;
-    case 2: xor_slices(o, os, p, ps, r0, r1, 2); break;
-    case 3: xor_slices(o, os, p, ps, r0, r1, 3); break;
-    default: xor_slices(o, os, p, ps, r0, r1, 4);
-    }
+    __m128i *o = dst < 0 ? (__m128i *)c->values + lanes * r[0].a
+                         : (__m128i *)c->scratch + lanes * dst;
+    int64_t os = lanes * (dst < 0 ? r[0].b : 1);
+    if (lanes == 1) XOR_SLICES(1)
+    else XOR_SLICES(lanes)
     return 1;
 }
 
@@ -732,7 +750,7 @@ TGT static void linear_op(ctx_t *c, int64_t kind, const rows_t *r, int64_t dst, 
         if (c->width == 2) xor_rows(c, r, dst, r0, r1, k, 2);
         else xor_rows(c, r, dst, r0, r1, k, c->width);
     } else if (kind == OP_RAGGED) {
-        if (ragged_one_lane(c, r, dst, n, r0, r1, aux)) return;
+        if (ragged_fixed(c, r, dst, n, r0, r1, aux)) return;
         if (c->width == 2) ragged_rows(c, r, dst, n, r0, r1, aux, 2);
         else ragged_rows(c, r, dst, n, r0, r1, aux, c->width);
     } else { /* PUBLISH */
