@@ -783,6 +783,14 @@ typedef struct {
     atomic_long *reset; /* set to 0 by the last to arrive, before the others go on */
 } barrier_t;
 
+static void futex_wait(atomic_int *addr, int value) {
+    syscall(SYS_futex, addr, FUTEX_WAIT_PRIVATE, value, NULL, NULL, 0);
+}
+
+static void futex_wake(atomic_int *addr) {
+    syscall(SYS_futex, addr, FUTEX_WAKE_PRIVATE, INT_MAX, NULL, NULL, 0);
+}
+
 static void barrier_wait(barrier_t *b) {
     int gen = atomic_load(&b->gen);
     if (atomic_fetch_add(&b->count, 1) == b->parties - 1) {
@@ -790,7 +798,7 @@ static void barrier_wait(barrier_t *b) {
         atomic_store(b->reset, 0);
         atomic_store(&b->gen, gen + 1);
         if (atomic_load(&b->sleepers))
-            syscall(SYS_futex, &b->gen, FUTEX_WAKE_PRIVATE, INT_MAX, NULL, NULL, 0);
+            futex_wake(&b->gen);
         return;
     }
     for (int spin = 0; spin < SPIN_BEFORE_SLEEP; spin++) {
@@ -800,7 +808,7 @@ static void barrier_wait(barrier_t *b) {
     /* the other thread may wait for a core: sleep, so this one is free to run it */
     atomic_fetch_add(&b->sleepers, 1);
     while (atomic_load(&b->gen) == gen)
-        syscall(SYS_futex, &b->gen, FUTEX_WAIT_PRIVATE, gen, NULL, NULL, 0);
+        futex_wait(&b->gen, gen);
     atomic_fetch_sub(&b->sleepers, 1);
 }
 
@@ -871,14 +879,6 @@ static struct {
     pid_t pid; /* the process the helper runs in */
 } helper = {.lock = PTHREAD_MUTEX_INITIALIZER};
 
-static void futex_wait(atomic_int *addr, int value) {
-    syscall(SYS_futex, addr, FUTEX_WAIT_PRIVATE, value, NULL, NULL, 0);
-}
-
-static void futex_wake(atomic_int *addr) {
-    syscall(SYS_futex, addr, FUTEX_WAKE_PRIVATE, INT_MAX, NULL, NULL, 0);
-}
-
 static void *helper_main(void *arg) {
     int seen = (int)(intptr_t)arg;
     for (;;) {
@@ -920,10 +920,9 @@ static void run_with_helper(job_t *jb) {
     atomic_store(&helper.posted, seq);
     futex_wake(&helper.posted);
     run_part(jb, 0);
-    for (int spin = 0; atomic_load(&helper.done) != seq; spin++) {
-        int done = atomic_load(&helper.done);
+    for (int spin = 0, done; (done = atomic_load(&helper.done)) != seq; spin++) {
         if (spin < SPIN_BEFORE_SLEEP) _mm_pause();
-        else if (done != seq) futex_wait(&helper.done, done);
+        else futex_wait(&helper.done, done);
     }
     pthread_mutex_unlock(&helper.lock);
 }
