@@ -22,7 +22,7 @@ import pytest
 
 from snail_common.arith import catalog
 from snail_common.circuit import CircuitBuilder, evaluate_bits, registry, schedule_circuit
-from snail_common.circuit.plan import plan_for
+from snail_common.circuit.plan import LinearPlan, Plan, RunGroup, plan_for
 from snail_common.gc import Evaluator, Garbler, active_input_labels, decode_output_labels
 from snail_common.gc import engine as engines
 from snail_common.gc.lanes import LaneEvaluator, LaneGarbler
@@ -159,6 +159,42 @@ def test_strided_columns_in_lanes_are_numpy_bit_for_bit(isa):
     assert streams["native"][0] == streams["numpy"][0]
     for a, b in zip(streams["native"][1], streams["numpy"][1], strict=True):
         assert np.array_equal(a, b)
+
+
+def _xor_of_columns(values: np.ndarray, groups) -> np.ndarray:
+    """What a linear step writes: each group's out rows, the XOR of its columns' rows."""
+    want = values.copy()
+    for g in groups:
+        acc = np.zeros_like(values[g.out])
+        for col in g.columns:
+            acc ^= values[col]  # a slice of one slot without a step: that slot, each row
+        want[g.out] = acc
+    return want
+
+
+@pytest.mark.parametrize("lanes", [1, 2])
+def test_xor_ops_of_many_slice_columns_are_the_xor_of_their_columns(lanes, monkeypatch):
+    """More columns than one pass takes (9: 4 + 4 + 1; 6 into scratch rows), over more
+    rows than one block: written in place and, for a step that may not, through scratch."""
+    rng = np.random.default_rng(11)
+    n_slots, rows = 6000, 301
+    values = rng.integers(0, 1 << 63, (n_slots, 2 * lanes), dtype=np.uint64)
+    def run(first: int, step: int = 1) -> slice:
+        return slice(first, first + step * (rows - 1) + 1, step)
+
+    wide = RunGroup(run(4000), (*(run(300 * j, 2) for j in range(8)), slice(3900, 3901)))
+    few = RunGroup(run(4400), (run(0), run(rows)))
+    waits = RunGroup(run(5000), (run(5000), *(run(300 * j) for j in range(1, 6))))  # reads
+    # the rows it writes: a step that computes into scratch, then publishes
+    plan = Plan((LinearPlan((wide, few), True), LinearPlan((waits,), False)), 0)
+    program = build_program(plan, n_slots, 64)
+    assert [int(op[2]) for op in program.ops if op[0] & 0xFF == 1] == [9, 2, 6]
+    assert (program.rows[:, 0] == 0).all()  # every row descriptor a slice
+    want = _xor_of_columns(_xor_of_columns(values, (wide, few)), (waits,))
+    monkeypatch.setattr("snail_common.gc.native.run.program_for", lambda *_: program)
+    run = NativeRun(None, 64, 1, values, [bytes(16)] * lanes)
+    run.run(run.program.n_ops, None)
+    assert np.array_equal(values, want)
 
 
 def test_the_stream_digest_of_a_fixed_run_is_pinned(isa):

@@ -693,13 +693,14 @@ TGT INLINE int ragged_fixed(ctx_t *c, const rows_t *r, int64_t dst, int64_t n, i
     return 1;
 }
 
-#define SLICE_COLUMNS 4 /* up to this many columns, an XOR op of slices loops on strides */
+#define SLICE_COLUMNS 4 /* columns an XOR of slices takes in one pass over its rows */
+#define SLICE_BLOCK 128 /* rows per pass when the columns take several passes */
 
-/* rows r0 .. r1-1 of an XOR op of K columns whose rows are all slices, L lanes (16-byte
- * blocks) a row: each row's address is its slice's start plus i times its step, no list
- * of row addresses */
+/* rows r0 .. r1-1 of an XOR op's K columns (all slices), L lanes (16-byte blocks) a row,
+ * stored (`into` 0) or XORed into the output rows (1): each row's address is its slice's
+ * start plus i times its step, no list of row addresses */
 TGT INLINE void xor_slices(__m128i *o, int64_t os, const __m128i **p, const int64_t *ps,
-                           int64_t r0, int64_t r1, int K, int64_t L) {
+                           int64_t r0, int64_t r1, int K, int into, int64_t L) {
     const __m128i *p0 = p[0], *p1 = p[K > 1], *p2 = p[K > 2 ? 2 : 0], *p3 = p[K > 3 ? 3 : 0];
     int64_t s0 = ps[0], s1 = ps[K > 1], s2 = ps[K > 2 ? 2 : 0], s3 = ps[K > 3 ? 3 : 0];
     for (int64_t i = r0; i < r1; i++)
@@ -708,37 +709,48 @@ TGT INLINE void xor_slices(__m128i *o, int64_t os, const __m128i **p, const int6
             if (K > 1) acc = _mm_xor_si128(acc, LD(p1 + i * s1 + l));
             if (K > 2) acc = _mm_xor_si128(acc, LD(p2 + i * s2 + l));
             if (K > 3) acc = _mm_xor_si128(acc, LD(p3 + i * s3 + l));
+            if (into) acc = _mm_xor_si128(acc, LD(o + i * os + l));
             ST(o + i * os + l, acc);
         }
 }
 
-#define XOR_SLICES(L)                                                 \
-    switch (k) {                                                      \
-    case 1: xor_slices(o, os, p, ps, r0, r1, 1, L); break;            \
-    case 2: xor_slices(o, os, p, ps, r0, r1, 2, L); break;            \
-    case 3: xor_slices(o, os, p, ps, r0, r1, 3, L); break;            \
-    default: xor_slices(o, os, p, ps, r0, r1, 4, L);                  \
+#define XOR_SLICES(L)                                                                   \
+    switch (K) {                                                                        \
+    case 1: xor_slices(o, os, p, ps, b0, b1, 1, col > 0, L); break;                       \
+    case 2: xor_slices(o, os, p, ps, b0, b1, 2, col > 0, L); break;                       \
+    case 3: xor_slices(o, os, p, ps, b0, b1, 3, col > 0, L); break;                       \
+    default: xor_slices(o, os, p, ps, b0, b1, 4, col > 0, L);                             \
     }
 
-/* xor_slices where it applies (at most SLICE_COLUMNS columns, every row descriptor a
- * slice; one lane: the row's width a constant): 1 when it ran the rows, 0 when the caller
- * must */
+/* an XOR op whose row descriptors are all slices (one lane: the row's width a constant),
+ * its columns SLICE_COLUMNS at a time: with more, over blocks of SLICE_BLOCK rows, the
+ * first pass stores and the others XOR into the block's output rows (a direct op reads
+ * none of the rows it writes, so the order is free): 1 when it ran the rows, 0 when the
+ * caller must */
 TGT INLINE int xor_op_of_slices(ctx_t *c, const rows_t *r, int64_t dst, int64_t r0,
                                 int64_t r1, int64_t k) {
-    if (k < 1 || k > SLICE_COLUMNS || (dst < 0 && r[0].kind != R_SLICE)) return 0;
-    int64_t lanes = c->width / 2;
-    const __m128i *p[SLICE_COLUMNS];
-    int64_t ps[SLICE_COLUMNS];
-    for (int64_t col = 0; col < k; col++) {
+    if (k < 1 || (dst < 0 && r[0].kind != R_SLICE)) return 0;
+    for (int64_t col = 0; col < k; col++)
         if (r[1 + col].kind != R_SLICE) return 0;
-        p[col] = (const __m128i *)c->values + lanes * r[1 + col].a;
-        ps[col] = lanes * r[1 + col].b;
-    }
+    int64_t lanes = c->width / 2;
     __m128i *o = dst < 0 ? (__m128i *)c->values + lanes * r[0].a
                          : (__m128i *)c->scratch + lanes * dst;
     int64_t os = lanes * (dst < 0 ? r[0].b : 1);
-    if (lanes == 1) XOR_SLICES(1)
-    else XOR_SLICES(lanes)
+    int64_t block = k <= SLICE_COLUMNS ? r1 - r0 : SLICE_BLOCK;
+    for (int64_t b0 = r0; b0 < r1; b0 += block) {
+        int64_t b1 = r1 - b0 < block ? r1 : b0 + block;
+        for (int64_t col = 0; col < k; col += SLICE_COLUMNS) {
+            int K = (int)(k - col < SLICE_COLUMNS ? k - col : SLICE_COLUMNS);
+            const __m128i *p[SLICE_COLUMNS];
+            int64_t ps[SLICE_COLUMNS];
+            for (int j = 0; j < K; j++) {
+                p[j] = (const __m128i *)c->values + lanes * r[1 + col + j].a;
+                ps[j] = lanes * r[1 + col + j].b;
+            }
+            if (lanes == 1) XOR_SLICES(1)
+            else XOR_SLICES(lanes)
+        }
+    }
     return 1;
 }
 
