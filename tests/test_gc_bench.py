@@ -17,6 +17,9 @@ def test_engine_report_shape_and_sanity():
                            "step_overhead_us", "scheme", "bytes_per_and"}
     assert all(report[k] > 0 for k in RATES)
     assert report["step_overhead_us"] > 0
+    # the stream's floor: TLS both ways and the socket, each at least 10 MB per CPU second
+    assert all(report[k] > 1e7 for k in ("tls_encrypt_bytes_per_s", "tls_decrypt_bytes_per_s",
+                                         "socket_bytes_per_s"))
     assert report["wide_and"] == 2 * (1 << 15)
     assert report["deep_steps"] >= 2 * 20
     # one AES call per hashed label: the engine cannot beat the raw AES rate per label
