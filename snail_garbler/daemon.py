@@ -182,10 +182,12 @@ class GarblerDaemon(Daemon):
                 record["scheme"] = req.get("scheme", DEFAULT_SCHEME)
                 block, frame = frame_plan(schedule, scheme,
                                           self.engine.get("engine", "numpy"))
-                garbler = (await self.lanes.lane(req["circuit"], schedule, req["seed"],
-                                                 req["delta"], req["key"], block, frame)
-                           if scheme == SCHEME_HALF_GATES else None)  # lanes: half-gates
-                running = True
+                garbler = None
+                if scheme == SCHEME_HALF_GATES:  # lanes run half-gates only
+                    garbler = await self.lanes.lane(req["circuit"], schedule, req["seed"],
+                                                    req["delta"], req["key"], block, frame,
+                                                    client)
+                    running = True  # a run the batcher counts until it is released
                 if garbler is None:
                     make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
                                              req["key"], block_gates=block,
@@ -246,7 +248,7 @@ class GarblerDaemon(Daemon):
             record["bytes_out"] = replied
         finally:
             if running:
-                self.lanes.release(req["circuit"])
+                self.lanes.release(req["circuit"], client)
             record["bytes_out"] += sent
             record["seconds"] = time.monotonic() - t0
             self.finish(peer, record)

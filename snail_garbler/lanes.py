@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Hashable, Iterator
 
 import numpy as np
 
@@ -100,12 +100,14 @@ class LaneBatcher:
         self._batcher: Batcher[_Batch] = Batcher(window_s, max_lanes)
 
     async def lane(self, circuit_id: str, schedule: Schedule, seed: bytes, delta: bytes,
-                   key: bytes, block: int, frame: int) -> LaneView | None:
-        """This request's lane of its batch, or None to garble alone; ``release`` it."""
+                   key: bytes, block: int, frame: int, client: Hashable = None,
+                   ) -> LaneView | None:
+        """This request's lane of its batch, or None to garble alone; ``release`` it.
+        ``client``'s own runs under way (its requests garbled ahead) do not make it wait."""
         joined = await self._batcher.join(
             circuit_id, (circuit_id, block, frame), lambda: _Batch(schedule, block, frame),
-            lambda batch: batch.join(seed, delta, key), _Batch.leave)
+            lambda batch: batch.join(seed, delta, key), _Batch.leave, client)
         return None if joined is None else LaneView(*joined)
 
-    def release(self, circuit_id: str) -> None:
-        self._batcher.release(circuit_id)
+    def release(self, circuit_id: str, client: Hashable = None) -> None:
+        self._batcher.release(circuit_id, client)

@@ -78,3 +78,32 @@ def test_a_lone_run_never_waits_for_the_window_and_a_fleet_does():
         assert isinstance(alone, Solo)
 
     asyncio.run(scenario())
+
+
+def test_a_clients_own_garbled_ahead_request_never_waits_and_anothers_does():
+    """A lone client garbles ahead: its next request arrives while its own run is under
+    way and must not wait out the window (1000 s would show); another client's request
+    still waits and, with a third, shares a pass."""
+    from snail_garbler.lanes import LaneBatcher, LaneView
+
+    _, schedule = registry.compiled(CIRCUIT)
+    secret = (bytes(16), bytes(16), bytes(16))
+    me, you, them = object(), object(), object()
+
+    async def scenario():
+        batcher = LaneBatcher(window_s=1000, max_lanes=2)
+
+        def lane(client):
+            return batcher.lane(CIRCUIT, schedule, *secret, 64, 4096, client)
+
+        assert await asyncio.wait_for(lane(me), 1.0) is None
+        assert await asyncio.wait_for(lane(me), 1.0) is None  # ahead: its own run only
+        yours, theirs = await asyncio.wait_for(asyncio.gather(lane(you), lane(them)), 1.0)
+        assert isinstance(yours, LaneView) and isinstance(theirs, LaneView)
+        assert yours.lanes == theirs.lanes == 2
+        for client in (me, me, you, them):
+            batcher.release(CIRCUIT, client)
+        assert await asyncio.wait_for(lane(you), 1.0) is None  # nothing under way
+        batcher.release(CIRCUIT, you)
+
+    asyncio.run(scenario())
