@@ -430,6 +430,74 @@ INLINE uint64_t get_bit(const uint64_t *ctl, int64_t bit) {
     return (load64(ctl + bit / 64) >> (bit % 64)) & 1;
 }
 
+/* OR the bits of v into ctl from bit `bit` on (v's set bits stay inside the array) */
+INLINE void set_bits(uint64_t *ctl, int64_t bit, uint64_t v) {
+    int64_t w = bit / 64;
+    unsigned s = (unsigned)(bit % 64);
+    store64(ctl + w, load64(ctl + w) | (v << s));
+    if (s && (v >> (64 - s))) store64(ctl + w + 1, load64(ctl + w + 1) | (v >> (64 - s)));
+}
+
+/* the two 0/1 words of v as bits 0 and 1 */
+TGT INLINE uint64_t two_bits(__m128i v) {
+    return (uint64_t)_mm_movemask_pd(_mm_castsi128_pd(_mm_slli_epi64(v, 63)));
+}
+
+#define X2(a, b) _mm_xor_si128(a, b)
+#define A2(a, b) _mm_and_si128(a, b)
+
+/* th_garble's tables, control bits and output labels for gates i, i+1 (chunk rows j,
+ * j+1) from their colour-0 labels `lab` and hashes `y`: the scalar formulas below, with
+ * both gates side by side in the two 64-bit words of each register */
+TGT INLINE void th_finish2(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
+                           int64_t i, int j, const __m128i *lab, const __m128i *y,
+                           const uint64_t *alpha, const uint64_t *beta) {
+    __m128i h[6], hb[6], one = _mm_set1_epi64x(1), zero = _mm_setzero_si128();
+    for (int e = 0; e < 6; e++) {
+        __m128i v0 = X2(y[e], sigma(lab[e])), v1 = X2(y[6 + e], sigma(lab[6 + e]));
+        h[e] = _mm_unpacklo_epi64(v0, v1);
+        hb[e] = A2(_mm_unpackhi_epi64(v0, v1), one);
+    }
+    __m128i al = _mm_unpacklo_epi64(lab[0], lab[6]), ar = _mm_unpackhi_epi64(lab[0], lab[6]);
+    __m128i bl = _mm_unpacklo_epi64(lab[2], lab[8]), br = _mm_unpackhi_epi64(lab[2], lab[8]);
+    __m128i s0 = X2(X2(al, ar), bl), s1 = X2(al, br), s2 = X2(X2(ar, bl), br);
+    uint64_t r0a, r1a, r0b, r1b;
+    rand_bits(c, first + (uint64_t)i, &r0a, &r1a);
+    rand_bits(c, first + (uint64_t)i + 1, &r0b, &r1b);
+    __m128i r0 = _mm_set_epi64x((long long)r0b, (long long)r0a);
+    __m128i r1 = _mm_set_epi64x((long long)r1b, (long long)r1a);
+    __m128i alp = _mm_set_epi64x((long long)alpha[1], (long long)alpha[0]);
+    __m128i bet = _mm_set_epi64x((long long)beta[1], (long long)beta[0]);
+    __m128i a_ = X2(alp, one), b_ = X2(bet, one);
+#define NEG(v) _mm_sub_epi64(zero, v)
+    __m128i m0 = NEG(r0), m1 = NEG(r1), m2 = NEG(X2(r0, a_)), m3 = NEG(X2(r1, b_)),
+            m4 = NEG(X2(X2(r0, a_), b_)), m5 = NEG(X2(r1, a_)), m6 = NEG(A2(alp, bet)),
+            m7 = NEG(A2(a_, b_)), m8 = NEG(A2(alp, b_));
+#undef NEG
+    __m128i dl = _mm_set1_epi64x((long long)lo64(c->delta[0]));
+    __m128i dr = _mm_set1_epi64x((long long)hi64(c->delta[0]));
+    __m128i dlr = X2(dl, dr);
+    __m128i k00l = X2(X2(X2(h[0], h[4]), X2(A2(m0, s0), A2(m1, s1))), X2(bl, A2(m6, dl)));
+    __m128i k00r = X2(X2(X2(h[2], h[4]), X2(A2(m0, s1), A2(m1, s2))), X2(ar, A2(m6, dr)));
+    __m128i k11l = X2(X2(X2(h[1], h[4]), A2(m2, X2(s0, dr))),
+                      X2(A2(m3, X2(s1, dlr)), A2(m7, dl)));
+    __m128i k11r = X2(X2(X2(h[3], h[4]), A2(m2, X2(s1, dlr))),
+                      X2(A2(m3, X2(s2, dl)), A2(m7, dr)));
+    __m128i k01 = X2(X2(X2(h[0], h[5]), X2(A2(m4, X2(s0, dl)), A2(m5, X2(s1, dr)))),
+                     X2(X2(bl, A2(m8, dl)), dl));
+    uint64_t *tab = c->tables, *ctl = c->tables + 3 * n;
+    ST(tab + i, X2(k00l, k11l)); /* gates i and i+1 are adjacent in each table */
+    ST(tab + n + i, X2(k00r, k11r));
+    ST(tab + 2 * n + i, X2(k00l, k01));
+    set_bits(ctl, i, two_bits(X2(X2(r0, hb[0]), hb[4])));
+    set_bits(ctl, n + i, two_bits(X2(X2(r1, hb[2]), hb[4])));
+    set_bits(ctl, 2 * n + i, two_bits(X2(X2(a_, hb[0]), hb[1])));
+    set_bits(ctl, 3 * n + i, two_bits(X2(X2(b_, hb[2]), hb[3])));
+    set_bits(ctl, 4 * n + i, two_bits(X2(X2(X2(a_, b_), hb[4]), hb[5])));
+    ST(ch->o[j], _mm_unpacklo_epi64(k00l, k00r));
+    ST(ch->o[j + 1], _mm_unpackhi_epi64(k00l, k00r));
+}
+
 /* three-halves garbling of gates i .. i+g-1 (threehalves.py, ThreeHalves.garble) */
 TGT INLINE void th_garble(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first, int64_t i,
                           int j, int g) {
@@ -452,6 +520,10 @@ TGT INLINE void th_garble(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first
             y[6 * k + h] = _mm_xor_si128(sigma(l[h]), tweak(3 * gate + (uint64_t)(h / 2)));
     }
     aes_n(&c->keys[0], y, 6 * g);
+    if (g == 2) {
+        th_finish2(c, ch, n, first, i, j, lab, y, alpha, beta);
+        return;
+    }
     uint64_t *tab = c->tables, *ctl = c->tables + 3 * n;
     uint64_t dl = lo64(d), dr = hi64(d);
     _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
