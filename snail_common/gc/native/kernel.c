@@ -51,7 +51,7 @@ enum { MAX_THREADS = 2 };
 #define HG_GARBLE_BATCH 2
 #define HG_EVAL_BATCH 4
 #define TH_GARBLE_BATCH 2
-#define TH_EVAL_BATCH 3
+#define TH_EVAL_BATCH 2
 #define BATCH 4 /* the largest */
 /* VAES: 8 independent 256-bit AES blocks (16 hashes) in flight per batch */
 #define HG_GARBLE_BATCH_V 4
@@ -559,6 +559,52 @@ TGT INLINE void th_garble(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first
     }
 }
 
+/* bits `bit` and `bit` + 1 of ctl as bits 0 and 1 */
+INLINE uint64_t get_bits2(const uint64_t *ctl, int64_t bit) {
+    int64_t w = bit / 64;
+    unsigned s = (unsigned)(bit % 64);
+    uint64_t v = load64(ctl + w) >> s;
+    if (s == 63) v |= load64(ctl + w + 1) << 1;
+    return v & 3;
+}
+
+/* bits 0 and 1 of v as the two 0/1 words of a register */
+TGT INLINE __m128i words_of(uint64_t v) {
+    return _mm_set_epi64x((long long)(v >> 1), (long long)(v & 1));
+}
+
+/* th_evaluate's output labels for gates i, i+1 (chunk rows j, j+1) from their labels
+ * `lab` (a, b, a^b of each) and hashes `y`: the scalar formulas below, both gates side by
+ * side in the two 64-bit words of each register */
+TGT INLINE void th_eval_finish2(ctx_t *c, const chunk_t *ch, int64_t n, int64_t i, int j,
+                                const __m128i *lab, const __m128i *y) {
+    __m128i h[3], hb[3], one = _mm_set1_epi64x(1), zero = _mm_setzero_si128();
+    for (int e = 0; e < 3; e++) {
+        __m128i v0 = X2(y[e], sigma(lab[e])), v1 = X2(y[3 + e], sigma(lab[3 + e]));
+        h[e] = _mm_unpacklo_epi64(v0, v1);
+        hb[e] = A2(_mm_unpackhi_epi64(v0, v1), one);
+    }
+    __m128i al = _mm_unpacklo_epi64(lab[0], lab[3]), ar = _mm_unpackhi_epi64(lab[0], lab[3]);
+    __m128i bl = _mm_unpacklo_epi64(lab[1], lab[4]), br = _mm_unpackhi_epi64(lab[1], lab[4]);
+    __m128i s0 = X2(X2(al, ar), bl), s1 = X2(al, br), s2 = X2(X2(ar, bl), br);
+    __m128i ci = A2(al, one), cj = A2(bl, one), x = X2(ci, cj);
+    const uint64_t *tab = c->tables, *ctl = c->tables + 3 * n;
+    __m128i z[5];
+    for (int e = 0; e < 5; e++) z[e] = words_of(get_bits2(ctl, e * n + i));
+    __m128i r1 = X2(X2(X2(z[0], A2(ci, z[2])), A2(x, z[4])), X2(hb[0], hb[2]));
+    __m128i r2 = X2(X2(X2(z[1], A2(cj, z[3])), A2(x, z[4])), X2(hb[1], hb[2]));
+    __m128i g0 = LD(tab + i), g1 = LD(tab + n + i), g2 = LD(tab + 2 * n + i);
+#define NEG(v) _mm_sub_epi64(zero, v)
+    __m128i mx = NEG(x), mi = NEG(ci), mj = NEG(cj), mr1 = NEG(r1), mr2 = NEG(r2);
+#undef NEG
+    __m128i cl = X2(X2(X2(h[0], h[2]), X2(A2(mx, g2), A2(mi, g0))),
+                    X2(X2(A2(mr1, s0), A2(mr2, s1)), _mm_andnot_si128(mi, bl)));
+    __m128i cr = X2(X2(X2(h[1], h[2]), X2(A2(mx, g2), A2(mj, g1))),
+                    X2(X2(A2(mr1, s1), A2(mr2, s2)), _mm_andnot_si128(mj, ar)));
+    ST(ch->o[j], _mm_unpacklo_epi64(cl, cr));
+    ST(ch->o[j + 1], _mm_unpackhi_epi64(cl, cr));
+}
+
 /* three-halves evaluation of gates i .. i+g-1 (ThreeHalves.evaluate) */
 TGT INLINE void th_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first, int64_t i,
                             int j, int g) {
@@ -573,6 +619,10 @@ TGT INLINE void th_evaluate(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t fir
             y[3 * k + h] = _mm_xor_si128(sigma(l[h]), tweak(3 * gate + (uint64_t)h));
     }
     aes_n(&c->keys[0], y, 3 * g);
+    if (g == 2) {
+        th_eval_finish2(c, ch, n, i, j, lab, y);
+        return;
+    }
     const uint64_t *tab = c->tables, *ctl = c->tables + 3 * n;
     _Pragma("GCC unroll 4") for (int k = 0; k < g; k++) {
         int64_t q = i + k;
