@@ -446,21 +446,40 @@ TGT INLINE uint64_t two_bits(__m128i v) {
 #define X2(a, b) _mm_xor_si128(a, b)
 #define A2(a, b) _mm_and_si128(a, b)
 
+/* a pair of three-halves gates side by side, gate 0 in the low 64-bit word of each
+ * register and gate 1 in the high one: the hashes' words h[e] and bits hb[e] of
+ * y ^ sigma(lab) (K blocks a gate) and the sums of the labels A (block 0) and B (block
+ * b_at) the formulas use */
+typedef struct {
+    __m128i h[6], hb[6], al, ar, bl, br, s0, s1, s2;
+} th_pair_t;
+
+TGT INLINE void th_pair(const __m128i *lab, const __m128i *y, int K, int b_at, th_pair_t *p) {
+    __m128i one = _mm_set1_epi64x(1);
+    for (int e = 0; e < K; e++) {
+        __m128i v0 = X2(y[e], sigma(lab[e])), v1 = X2(y[K + e], sigma(lab[K + e]));
+        p->h[e] = _mm_unpacklo_epi64(v0, v1);
+        p->hb[e] = A2(_mm_unpackhi_epi64(v0, v1), one);
+    }
+    p->al = _mm_unpacklo_epi64(lab[0], lab[K]);
+    p->ar = _mm_unpackhi_epi64(lab[0], lab[K]);
+    p->bl = _mm_unpacklo_epi64(lab[b_at], lab[K + b_at]);
+    p->br = _mm_unpackhi_epi64(lab[b_at], lab[K + b_at]);
+    p->s0 = X2(X2(p->al, p->ar), p->bl);
+    p->s1 = X2(p->al, p->br);
+    p->s2 = X2(X2(p->ar, p->bl), p->br);
+}
+
 /* th_garble's tables, control bits and output labels for gates i, i+1 (chunk rows j,
  * j+1) from their colour-0 labels `lab` and hashes `y`: the scalar formulas below, with
  * both gates side by side in the two 64-bit words of each register */
 TGT INLINE void th_finish2(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first,
                            int64_t i, int j, const __m128i *lab, const __m128i *y,
                            const uint64_t *alpha, const uint64_t *beta) {
-    __m128i h[6], hb[6], one = _mm_set1_epi64x(1), zero = _mm_setzero_si128();
-    for (int e = 0; e < 6; e++) {
-        __m128i v0 = X2(y[e], sigma(lab[e])), v1 = X2(y[6 + e], sigma(lab[6 + e]));
-        h[e] = _mm_unpacklo_epi64(v0, v1);
-        hb[e] = A2(_mm_unpackhi_epi64(v0, v1), one);
-    }
-    __m128i al = _mm_unpacklo_epi64(lab[0], lab[6]), ar = _mm_unpackhi_epi64(lab[0], lab[6]);
-    __m128i bl = _mm_unpacklo_epi64(lab[2], lab[8]), br = _mm_unpackhi_epi64(lab[2], lab[8]);
-    __m128i s0 = X2(X2(al, ar), bl), s1 = X2(al, br), s2 = X2(X2(ar, bl), br);
+    th_pair_t p;
+    th_pair(lab, y, 6, 2, &p);
+    __m128i *h = p.h, *hb = p.hb, ar = p.ar, bl = p.bl, s0 = p.s0, s1 = p.s1, s2 = p.s2,
+            one = _mm_set1_epi64x(1), zero = _mm_setzero_si128();
     uint64_t r0a, r1a, r0b, r1b;
     rand_bits(c, first + (uint64_t)i, &r0a, &r1a);
     rand_bits(c, first + (uint64_t)i + 1, &r0b, &r1b);
@@ -578,15 +597,10 @@ TGT INLINE __m128i words_of(uint64_t v) {
  * side in the two 64-bit words of each register */
 TGT INLINE void th_eval_finish2(ctx_t *c, const chunk_t *ch, int64_t n, int64_t i, int j,
                                 const __m128i *lab, const __m128i *y) {
-    __m128i h[3], hb[3], one = _mm_set1_epi64x(1), zero = _mm_setzero_si128();
-    for (int e = 0; e < 3; e++) {
-        __m128i v0 = X2(y[e], sigma(lab[e])), v1 = X2(y[3 + e], sigma(lab[3 + e]));
-        h[e] = _mm_unpacklo_epi64(v0, v1);
-        hb[e] = A2(_mm_unpackhi_epi64(v0, v1), one);
-    }
-    __m128i al = _mm_unpacklo_epi64(lab[0], lab[3]), ar = _mm_unpackhi_epi64(lab[0], lab[3]);
-    __m128i bl = _mm_unpacklo_epi64(lab[1], lab[4]), br = _mm_unpackhi_epi64(lab[1], lab[4]);
-    __m128i s0 = X2(X2(al, ar), bl), s1 = X2(al, br), s2 = X2(X2(ar, bl), br);
+    th_pair_t p;
+    th_pair(lab, y, 3, 1, &p);
+    __m128i *h = p.h, *hb = p.hb, al = p.al, ar = p.ar, bl = p.bl, s0 = p.s0, s1 = p.s1,
+            s2 = p.s2, one = _mm_set1_epi64x(1), zero = _mm_setzero_si128();
     __m128i ci = A2(al, one), cj = A2(bl, one), x = X2(ci, cj);
     const uint64_t *tab = c->tables, *ctl = c->tables + 3 * n;
     __m128i z[5];
