@@ -26,6 +26,7 @@ the figures and writes the report. What is measured and how:
 from __future__ import annotations
 
 import json
+import os
 import secrets
 import subprocess
 import sys
@@ -41,6 +42,7 @@ from snail_common.arith import integer, multiply
 from snail_common.arith.catalog import OPS
 from snail_common.circuit import CircuitBuilder, schedule_circuit
 from snail_common.gc.run import garbled_run
+from snail_common.net.parent import child_env
 from snail_common.pnp.fops import F, MirrorBackend
 from snail_common.pnp.sil import input_shapes
 from snail_common.pnp.spec import Spec, program
@@ -160,14 +162,20 @@ def _unique(specs: list[Spec]) -> list[Spec]:
     return list({spec.circuit_id: spec for spec in specs}.values())
 
 
+COMPILE_CHILD = ("import sys; from snail_common.net.parent import exit_with_parent; "
+                 "exit_with_parent(); from snail_common import families; "
+                 "families.register_all(); from snail_common.circuit import registry; "
+                 "registry.compiled(sys.argv[1])")
+
+
 def precompile(specs: list[Spec]) -> None:
     """Compile ``specs`` into the circuit cache, each in a process of its own (a DO
-    circuit peaks at gigabytes; this process should not keep them)."""
+    circuit peaks at gigabytes; this process should not keep them) that ends with this
+    one: a run stopped mid-compile leaves no compiler behind."""
     for spec in specs:
-        code = ("import sys; from snail_common import families; families.register_all(); "
-                "from snail_common.circuit import registry; registry.compiled(sys.argv[1])")
-        proc = subprocess.run([sys.executable, "-c", code, spec.registry_id],
-                              capture_output=True, text=True)
+        proc = subprocess.run([sys.executable, "-c", COMPILE_CHILD, spec.registry_id],
+                              capture_output=True, text=True,
+                              env={**os.environ, **child_env()})
         if proc.returncode != 0:
             tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
             raise RuntimeError(f"compiling {spec.circuit_id} failed: {tail[0]}")

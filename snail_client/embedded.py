@@ -18,7 +18,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ from pathlib import Path
 
 from snail_common.net.conn import format_addr
 from snail_common.net.linkrates import AUTO
-from snail_common.net.parent import PARENT_ENV
+from snail_common.net.parent import child_env
 from snail_common.net.tls import make_certs
 
 from .blocking import SecureRunner
@@ -88,7 +87,7 @@ def start_daemon(role: str, args: list[str], log: Path, host: str = "127.0.0.1",
            *args]
     with open(log, "wb") as err:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=err, env={**os.environ, **_exit_with_us(), **(env or {})})
+                                stderr=err, env={**os.environ, **child_env(), **(env or {})})
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         port = _listening_port(log)
@@ -102,14 +101,6 @@ def start_daemon(role: str, args: list[str], log: Path, host: str = "127.0.0.1",
     proc.wait()
     raise ServiceError(f"the {role} did not start listening within {timeout:g} s: "
                        f"{_tail(log)}")
-
-
-def _exit_with_us() -> dict[str, str]:
-    """Ask the daemon to end when this process does (snail_common/net/parent.py). Linux
-    ties that to the thread that started it, so only the main thread asks."""
-    if threading.current_thread() is not threading.main_thread():
-        return {}
-    return {PARENT_ENV: str(os.getpid())}
 
 
 def _listening_port(log: Path) -> int | None:

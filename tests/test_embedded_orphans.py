@@ -48,3 +48,46 @@ def test_daemons_exit_when_their_starter_is_killed():
     for pid in alive:
         os.kill(pid, signal.SIGKILL)
     assert not alive, "an embedded daemon outlived its SIGKILLed starter"
+
+
+COMPILER = """
+from snail_bench.paper import precompile, sil_spec
+
+precompile([sil_spec("lm", 256)])  # a cold cache: compiling takes far longer than the test
+"""
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(entry.name))
+    return kids
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_circuit_compiling_for_the_paper_run_ends_with_the_run(tmp_path):
+    """``snail-bench paper`` compiles each circuit in a child for minutes: a run killed
+    mid-compile must not leave the compiler working (and holding gigabytes)."""
+    env = {**os.environ, "SNAIL_CACHE_DIR": str(tmp_path)}
+    starter = subprocess.Popen([sys.executable, "-c", COMPILER], env=env)
+    try:
+        deadline = time.monotonic() + 30
+        while not (kids := _children(starter.pid)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert kids, "the compiler child never started"
+    finally:
+        starter.send_signal(signal.SIGKILL)
+        starter.wait()
+    deadline = time.monotonic() + 15
+    while any(_running(p) for p in kids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [p for p in kids if _running(p)]
+    for pid in alive:
+        os.kill(pid, signal.SIGKILL)
+    assert not alive, "the compiler outlived its SIGKILLed run"

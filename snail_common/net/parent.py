@@ -5,7 +5,8 @@ them on the way out; killed with SIGKILL (or by the OOM killer) they cannot, and
 daemons lived on, holding their ports and gigabytes of circuits. The starter sets
 ``SNAIL_EXIT_WITH_PARENT`` to its pid in the daemon's environment; the daemon then asks
 Linux for SIGTERM when its parent dies (``PR_SET_PDEATHSIG``), which shuts it down as
-usual, and exits at once if the parent is already gone. Elsewhere it does nothing.
+usual, and exits at once if the parent is already gone. Elsewhere it does nothing. Other
+long children (``snail-bench paper`` compiling a circuit for minutes) ask the same way.
 """
 
 from __future__ import annotations
@@ -15,9 +16,18 @@ import ctypes.util
 import os
 import signal
 import sys
+import threading
 
 PARENT_ENV = "SNAIL_EXIT_WITH_PARENT"
 _PR_SET_PDEATHSIG = 1
+
+
+def child_env() -> dict[str, str]:
+    """The environment entry that asks a child to end with this process. Linux ties the
+    request to the thread that started the child, so only the main thread asks."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {PARENT_ENV: str(os.getpid())}
 
 
 def exit_with_parent() -> bool:
