@@ -31,6 +31,17 @@ def _running(pid: int) -> bool:
     return "\nState:\tZ" not in status
 
 
+def _survivors(pids: list[int], seconds: float) -> list[int]:
+    """Those of ``pids`` still running after ``seconds``, killed then (nothing is left)."""
+    deadline = time.monotonic() + seconds
+    while any(_running(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [p for p in pids if _running(p)]
+    for pid in alive:
+        os.kill(pid, signal.SIGKILL)
+    return alive
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_daemons_exit_when_their_starter_is_killed():
     starter = subprocess.Popen([sys.executable, "-c", STARTER], stdout=subprocess.PIPE,
@@ -41,13 +52,7 @@ def test_daemons_exit_when_their_starter_is_killed():
     finally:
         starter.send_signal(signal.SIGKILL)
         starter.wait()
-    deadline = time.monotonic() + 20
-    while any(_running(p) for p in pids) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    alive = [p for p in pids if _running(p)]
-    for pid in alive:
-        os.kill(pid, signal.SIGKILL)
-    assert not alive, "an embedded daemon outlived its SIGKILLed starter"
+    assert not _survivors(pids, 20), "an embedded daemon outlived its SIGKILLed starter"
 
 
 COMPILER = """
@@ -84,10 +89,4 @@ def test_a_circuit_compiling_for_the_paper_run_ends_with_the_run(tmp_path):
     finally:
         starter.send_signal(signal.SIGKILL)
         starter.wait()
-    deadline = time.monotonic() + 15
-    while any(_running(p) for p in kids) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    alive = [p for p in kids if _running(p)]
-    for pid in alive:
-        os.kill(pid, signal.SIGKILL)
-    assert not alive, "the compiler outlived its SIGKILLed run"
+    assert not _survivors(kids, 15), "the compiler outlived its SIGKILLed run"

@@ -78,13 +78,18 @@ class Batcher(Generic[B]):
 
     def release(self, circuit_id: str, who: Hashable | None = None) -> None:
         """A run that ``join`` let start (alone or in a batch) is over."""
-        for counter, key in ((self._running, circuit_id), (self._own, (circuit_id, who))):
-            if key in counter:
-                counter[key] -= 1
-                if counter[key] <= 0:
-                    del counter[key]
+        _drop(self._running, circuit_id)
+        if who is not None:
+            _drop(self._own, (circuit_id, who))
 
     def _close(self, group: Hashable, batch: B) -> None:
         if self._open.get(group) is batch:
             del self._open[group]
         batch.close()
+
+
+def _drop(counter: Counter, key: Hashable) -> None:
+    """One run fewer under ``key``; the key goes with its last run."""
+    counter[key] -= 1
+    if counter[key] <= 0:
+        del counter[key]

@@ -140,10 +140,13 @@ TGT INLINE __m128i sigma(__m128i x) {
     return _mm_xor_si128(_mm_shuffle_epi32(x, 0x4e), _mm_move_epi64(x));
 }
 
+/* all ones in each 64-bit word whose value is 1 (the words are 0 or 1) */
+TGT INLINE __m128i all_of(__m128i v) { return _mm_sub_epi64(_mm_setzero_si128(), v); }
+
 /* all ones where lsb(word 0) is 1, both words */
 TGT INLINE __m128i lsb_mask(__m128i x) {
     __m128i bit = _mm_and_si128(x, _mm_set_epi64x(0, 1));
-    return _mm_shuffle_epi32(_mm_sub_epi64(_mm_setzero_si128(), bit), 0x44);
+    return _mm_shuffle_epi32(all_of(bit), 0x44);
 }
 
 TGT INLINE __m128i tweak(uint64_t t) { return _mm_set_epi64x((long long)t, 0); }
@@ -421,11 +424,6 @@ TGT INLINE void rand_bits(ctx_t *c, uint64_t g, uint64_t *r0, uint64_t *r1) {
     *r1 = (w >> (pos % 64 + 1)) & 1;
 }
 
-INLINE void set_bit(uint64_t *ctl, int64_t bit, uint64_t v) {
-    uint64_t w = load64(ctl + bit / 64);
-    store64(ctl + bit / 64, w | (v << (bit % 64)));
-}
-
 INLINE uint64_t get_bit(const uint64_t *ctl, int64_t bit) {
     return (load64(ctl + bit / 64) >> (bit % 64)) & 1;
 }
@@ -479,7 +477,7 @@ TGT INLINE void th_finish2(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t firs
     th_pair_t p;
     th_pair(lab, y, 6, 2, &p);
     __m128i *h = p.h, *hb = p.hb, ar = p.ar, bl = p.bl, s0 = p.s0, s1 = p.s1, s2 = p.s2,
-            one = _mm_set1_epi64x(1), zero = _mm_setzero_si128();
+            one = _mm_set1_epi64x(1);
     uint64_t r0a, r1a, r0b, r1b;
     rand_bits(c, first + (uint64_t)i, &r0a, &r1a);
     rand_bits(c, first + (uint64_t)i + 1, &r0b, &r1b);
@@ -488,11 +486,9 @@ TGT INLINE void th_finish2(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t firs
     __m128i alp = _mm_set_epi64x((long long)alpha[1], (long long)alpha[0]);
     __m128i bet = _mm_set_epi64x((long long)beta[1], (long long)beta[0]);
     __m128i a_ = X2(alp, one), b_ = X2(bet, one);
-#define NEG(v) _mm_sub_epi64(zero, v)
-    __m128i m0 = NEG(r0), m1 = NEG(r1), m2 = NEG(X2(r0, a_)), m3 = NEG(X2(r1, b_)),
-            m4 = NEG(X2(X2(r0, a_), b_)), m5 = NEG(X2(r1, a_)), m6 = NEG(A2(alp, bet)),
-            m7 = NEG(A2(a_, b_)), m8 = NEG(A2(alp, b_));
-#undef NEG
+    __m128i m0 = all_of(r0), m1 = all_of(r1), m2 = all_of(X2(r0, a_)),
+            m3 = all_of(X2(r1, b_)), m4 = all_of(X2(X2(r0, a_), b_)), m5 = all_of(X2(r1, a_)),
+            m6 = all_of(A2(alp, bet)), m7 = all_of(A2(a_, b_)), m8 = all_of(A2(alp, b_));
     __m128i dl = _mm_set1_epi64x((long long)lo64(c->delta[0]));
     __m128i dr = _mm_set1_epi64x((long long)hi64(c->delta[0]));
     __m128i dlr = X2(dl, dr);
@@ -569,11 +565,11 @@ TGT INLINE void th_garble(ctx_t *c, const chunk_t *ch, int64_t n, uint64_t first
         store64(tab + q, k00l ^ k11l);
         store64(tab + n + q, k00r ^ k11r);
         store64(tab + 2 * n + q, k00l ^ k01);
-        set_bit(ctl, q, r0 ^ hb[0] ^ hb[4]);
-        set_bit(ctl, n + q, r1 ^ hb[2] ^ hb[4]);
-        set_bit(ctl, 2 * n + q, a_ ^ hb[0] ^ hb[1]);
-        set_bit(ctl, 3 * n + q, b_ ^ hb[2] ^ hb[3]);
-        set_bit(ctl, 4 * n + q, a_ ^ b_ ^ hb[4] ^ hb[5]);
+        set_bits(ctl, q, r0 ^ hb[0] ^ hb[4]);
+        set_bits(ctl, n + q, r1 ^ hb[2] ^ hb[4]);
+        set_bits(ctl, 2 * n + q, a_ ^ hb[0] ^ hb[1]);
+        set_bits(ctl, 3 * n + q, b_ ^ hb[2] ^ hb[3]);
+        set_bits(ctl, 4 * n + q, a_ ^ b_ ^ hb[4] ^ hb[5]);
         ST(ch->o[j + k], _mm_set_epi64x((long long)k00r, (long long)k00l));
     }
 }
@@ -600,7 +596,7 @@ TGT INLINE void th_eval_finish2(ctx_t *c, const chunk_t *ch, int64_t n, int64_t 
     th_pair_t p;
     th_pair(lab, y, 3, 1, &p);
     __m128i *h = p.h, *hb = p.hb, al = p.al, ar = p.ar, bl = p.bl, s0 = p.s0, s1 = p.s1,
-            s2 = p.s2, one = _mm_set1_epi64x(1), zero = _mm_setzero_si128();
+            s2 = p.s2, one = _mm_set1_epi64x(1);
     __m128i ci = A2(al, one), cj = A2(bl, one), x = X2(ci, cj);
     const uint64_t *tab = c->tables, *ctl = c->tables + 3 * n;
     __m128i z[5];
@@ -608,9 +604,8 @@ TGT INLINE void th_eval_finish2(ctx_t *c, const chunk_t *ch, int64_t n, int64_t 
     __m128i r1 = X2(X2(X2(z[0], A2(ci, z[2])), A2(x, z[4])), X2(hb[0], hb[2]));
     __m128i r2 = X2(X2(X2(z[1], A2(cj, z[3])), A2(x, z[4])), X2(hb[1], hb[2]));
     __m128i g0 = LD(tab + i), g1 = LD(tab + n + i), g2 = LD(tab + 2 * n + i);
-#define NEG(v) _mm_sub_epi64(zero, v)
-    __m128i mx = NEG(x), mi = NEG(ci), mj = NEG(cj), mr1 = NEG(r1), mr2 = NEG(r2);
-#undef NEG
+    __m128i mx = all_of(x), mi = all_of(ci), mj = all_of(cj), mr1 = all_of(r1),
+            mr2 = all_of(r2);
     __m128i cl = X2(X2(X2(h[0], h[2]), X2(A2(mx, g2), A2(mi, g0))),
                     X2(X2(A2(mr1, s0), A2(mr2, s1)), _mm_andnot_si128(mi, bl)));
     __m128i cr = X2(X2(X2(h[1], h[2]), X2(A2(mx, g2), A2(mj, g1))),
