@@ -13,6 +13,13 @@ another circuit cancels them): sessions beyond the current frame's invocations a
 prepared without a frame's labels, and the next frame's ``expect`` sends its labels for
 them. Without that, each frame's first invocation waited for a whole garbling and its
 trip across the server link (about 0.1 s of a 1.2 s localization under `region`).
+
+Sessions prepared ahead are *reservations* to the servers (``ahead`` in their requests):
+they yield their place to another client's live session when a server is full
+(snail_common/net/slots.py). A reservation refused as busy or evicted tells the pool that
+it holds more than the servers can spare: its depth drops by one at once (to none at
+all, where every run then garbles when it is needed) and grows back by one only after
+``REGROW_AFTER`` invocations without another refusal.
 """
 
 from __future__ import annotations
@@ -23,7 +30,11 @@ from collections.abc import Awaitable, Callable
 
 import numpy as np
 
+from snail_common.net.linkrates import MAX_AHEAD
+
 from .sessions import FixedInputs, Prepared
+
+REGROW_AFTER = 20  # invocations without a refusal before the pool may hold one more
 
 
 class AheadPool:
@@ -33,7 +44,10 @@ class AheadPool:
     def __init__(self, ahead: int, prepare: Callable[[str, bool], Awaitable[Prepared]],
                  cancel: Callable[[Prepared], None],
                  adopt: Callable[[Prepared, FixedInputs], bool]) -> None:
-        self.ahead = ahead
+        self.ahead = ahead  # the depth wanted (the runner sizes it from the link)
+        self._most = max(ahead, MAX_AHEAD)
+        self.ceiling = self._most  # the depth the servers' refusals allow (module doc)
+        self._calm = 0  # invocations since the last refusal
         self._prepare = prepare  # (circuit id, with the declared fixed inputs' labels)
         self._cancel = cancel
         self._adopt = adopt  # sends a frame's fixed labels for a session prepared without
@@ -66,9 +80,24 @@ class AheadPool:
         """The input bits ``expect`` last declared shared by ``circuit_id``'s runs."""
         return self._fixed.get(circuit_id)
 
+    @property
+    def depth(self) -> int:
+        """Sessions kept prepared: as many as wanted, as few as the servers allow."""
+        return min(self.ahead, self.ceiling)
+
+    def refused(self) -> None:
+        """A server refused a reservation (busy) or took one back (evicted): hold one
+        fewer, and wait before holding more again."""
+        self.ceiling = max(0, min(self.ceiling, self.ahead) - 1)
+        self._calm = 0
+
     def used(self, circuit_id: str) -> None:
         """One of the expected invocations of ``circuit_id`` is under way."""
         self._expected[circuit_id] = max(self._expected.get(circuit_id, 0) - 1, 0)
+        self._calm += 1
+        if self._calm >= REGROW_AFTER and self.ceiling < self._most:
+            self.ceiling += 1
+            self._calm = 0
 
     def take(self, circuit_id: str, bits: np.ndarray, frame: bytes | None) -> Prepared | None:
         """A prepared session of ``circuit_id`` the servers still hold and that fits
@@ -81,7 +110,9 @@ class AheadPool:
                                    or session.frame == frame) \
                     and (session.fixed is None or session.fixed.matches(bits)):
                 return session
-            self._cancel(session)  # expired, its link broke or other inputs: garble anew
+            if session.refused:
+                self.refused()
+            self._cancel(session)  # expired, evicted, other inputs ...: garble anew
         return None
 
     async def in_flight(self, circuit_id: str, bits: np.ndarray,
@@ -101,7 +132,7 @@ class AheadPool:
         queue = self._prepared.setdefault(circuit_id, deque())
         frame_left = self._expected.get(circuit_id, 0)
         sequence = self._frames.get(circuit_id, 0) > 1 and circuit_id == self._warm
-        want = self.ahead if sequence else min(self.ahead, frame_left)
+        want = self.depth if sequence else min(self.depth, frame_left)
         pending = len(queue) + sum(1 for t in self._filling if t.get_name() == circuit_id)
         for i in range(pending, want):
             task = asyncio.get_running_loop().create_task(

@@ -56,6 +56,12 @@ class Inbox:
         """The server already gave up this session (an error or a broken link)."""
         return any(isinstance(m, Exception) or m["t"] == "error" for m, _ in self._items)
 
+    @property
+    def error_code(self) -> str | None:
+        """The code of the server's ``error`` for this session, if one came."""
+        return next((m["code"] for m, _ in self._items
+                     if not isinstance(m, Exception) and m["t"] == "error"), None)
+
 
 DEFAULT_LINK_TIMEOUT = 30.0
 

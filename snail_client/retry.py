@@ -2,9 +2,10 @@
 
 An invocation is retried, with a fresh session (new secrets: nothing of the failed one is
 reused), while ``--busy-wait`` lasts, when the failure says nothing about the request
-itself: a server at its limit (``busy``); and, where its role has another replica to
-turn to, one that is stopping (``draining``), a replica lost mid-run (a broken link, or
-``peer_lost`` from the server that lost its peer), a timeout. Tampering, a bad request,
+itself: a server at its limit (``busy``), a reservation whose place a live session took
+(``evicted``); and, where its role has another replica to turn to, one that is stopping
+(``draining``), a replica lost mid-run (a broken link, or ``peer_lost`` from the server
+that lost its peer), a timeout. Tampering, a bad request,
 a circuit a server does not have, a forbidden address are final, except an evaluator
 replica the garbler cannot find among its operator's names where the client knows others
 (in a rolling update, a garbler replica started after that evaluator replica left DNS
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from snail_common.net.errors import BUSY, FORBIDDEN, PEER_LOST, RETRYABLE
+from snail_common.net.errors import BUSY, EVICTED, FORBIDDEN, PEER_LOST, RETRYABLE
 
 from .links import ServiceError
 from .replicas import ReplicaSet
@@ -27,10 +28,11 @@ from .sessions import Prepared
 
 def retryable(exc: ServiceError, session: Prepared | None,
               sets: dict[str, ReplicaSet]) -> bool:
-    """Whether another attempt may succeed: after ``busy`` always (the server is there,
-    only full), after the other retryable failures when the role at fault has another
-    replica to turn to (with a single one, the failure is reported as it happened)."""
-    if exc.code == BUSY:
+    """Whether another attempt may succeed: after ``busy`` or ``evicted`` always (the
+    server is there, only full), after the other retryable failures when the role at
+    fault has another replica to turn to (with a single one, the failure is reported as
+    it happened)."""
+    if exc.code in (BUSY, EVICTED):
         return True
     if _evaluator_unknown_to_garbler(exc, session):
         return sets["evaluator"].several()

@@ -56,7 +56,7 @@ from snail_common.net import messages, tls
 from snail_common.net.chunks import runs, write_labels
 from snail_common.net.conn import connect, format_addr
 from snail_common.net.errors import (
-    BUSY,
+    EVICTED,
     PEER_LOST,
     TOO_LARGE,
     ConnectionClosed,
@@ -80,6 +80,7 @@ from .retry import blame, retryable
 from .sessions import (
     LINKS,
     OWNER_LINKS,
+    ROOMLESS,
     Address,
     FixedInputs,
     Invocation,
@@ -131,7 +132,8 @@ class AsyncSecureRunner:
         self.replicas = {role: ReplicaSet(role, addr, functools.partial(self._open, role))
                          for role, addr in (("garbler", self.garbler_addr),
                                             ("evaluator", self.evaluator_addr))}
-        self.ahead = AheadPool(ahead, self._prepare, self._cancel, self._adopt)
+        self.ahead = AheadPool(ahead, functools.partial(self._prepare, ahead=True),
+                               self._cancel, self._adopt)
         self.frame: tuple[bytes, str] | None = None  # see use_frame
 
     def use_frame(self, handle: bytes, map_owner: str) -> None:
@@ -176,15 +178,19 @@ class AsyncSecureRunner:
         A run refused as busy runs again, and one refused as draining or whose replica
         was lost does where another replica answers (retry.py): with a fresh session,
         after a jittered, doubling pause, for up to ``busy_wait`` seconds in all
-        (``client_busy_wait_s`` in the timing; ``self.retries`` counts the runs again)."""
+        (``client_busy_wait_s`` in the timing; ``self.retries`` counts the runs again).
+        A run whose reservation was evicted runs again at once; busy or evicted, the
+        pool holds fewer sessions ahead (ahead.py)."""
         t0 = time.perf_counter()
         pause, attempt = BACKOFF_FIRST, 0
         while True:
             try:
                 inv = await self._invoke_once(circuit_id, input_bits, attempt == 0)
             except ServiceError as exc:
+                if exc.code in ROOMLESS:
+                    self.ahead.refused()
                 waited = time.perf_counter() - t0
-                again = exc.retry if exc.retry is not None else exc.code == BUSY
+                again = exc.retry if exc.retry is not None else exc.code in ROOMLESS
                 if not again or waited + pause > self.busy_wait:
                     if again:
                         raise ServiceError(f"{exc} (retried {attempt} times for "
@@ -193,8 +199,9 @@ class AsyncSecureRunner:
                     raise
                 attempt += 1
                 self.retries += 1
-                await asyncio.sleep(pause * (0.5 + secrets.randbelow(1000) / 1000))
-                pause = min(2 * pause, BACKOFF_MAX)
+                if exc.code != EVICTED:  # a server with no room: give it a moment
+                    await asyncio.sleep(pause * (0.5 + secrets.randbelow(1000) / 1000))
+                    pause = min(2 * pause, BACKOFF_MAX)
                 continue
             waited = time.perf_counter() - t0 - inv.wall_s
             if waited > 0.001:
@@ -257,7 +264,7 @@ class AsyncSecureRunner:
         self._measured(g_stats["timing"], session, traffic["garbler_to_evaluator"], wall,
                        float(e_stats["timing"].get("wait_s", 0.0)) if ahead else 0.0)
         self._cycled(session, e_stats["timing"], wall)
-        timing["client_ahead"] = float(self.ahead.ahead)  # the depth it sized from them
+        timing["client_ahead"] = float(self.ahead.depth)  # the depth it sized from them
         self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e, session.scheme)
         self.invocations += 1
         for k, v in traffic.items():
@@ -298,23 +305,26 @@ class AsyncSecureRunner:
         return pick_scheme(self.measured, self.cycles.get(circuit_id),
                            self.schemes.get(circuit_id, "halfgates"))
 
-    async def _prepare(self, circuit_id: str, fixed: bool = True) -> Prepared:
+    async def _prepare(self, circuit_id: str, fixed: bool = True,
+                       ahead: bool = False) -> Prepared:
         """Ask for a session's garbling now, with fresh secrets (and, ``fixed``, send the
-        labels of the inputs the coming invocations share). A link that died while this
-        client was idle (a restarted server: its end of the connection is found closed
-        only when written to) is reconnected once, with new secrets."""
+        labels of the inputs the coming invocations share; ``ahead``: a reservation for
+        the pool, which a full server may refuse or take back). A link that died while
+        this client was idle (a restarted server: its end of the connection is found
+        closed only when written to) is reconnected once, with new secrets."""
         shared = self.ahead.fixed(circuit_id) if fixed else None
         try:
-            return await self._prepare_once(circuit_id, shared)
+            return await self._prepare_once(circuit_id, shared, ahead)
         except ConnectionClosed:
             pass
         try:
-            return await self._prepare_once(circuit_id, shared)
+            return await self._prepare_once(circuit_id, shared, ahead)
         except ConnectionClosed as exc:  # a replica lost twice over: another one?
             raise ServiceError(f"{circuit_id}: {exc}", PEER_LOST, retry=any(
                 r.several() for r in self.replicas.values())) from None
 
-    async def _prepare_once(self, circuit_id: str, fixed: FixedInputs | None) -> Prepared:
+    async def _prepare_once(self, circuit_id: str, fixed: FixedInputs | None,
+                            ahead: bool) -> Prepared:
         loop = asyncio.get_running_loop()
         try:
             registry.check_id(circuit_id)
@@ -342,15 +352,16 @@ class AsyncSecureRunner:
         scheme = self.session_scheme(circuit_id)
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
         chash = iface.content_hash
+        reserve = {"ahead": True} if ahead else {}
         try:
             sent_e = evaluator.conn.write(messages.make(
                 "session_start", sid=sid, circuit=circuit_id, hash=chash,
-                scheme=scheme))
+                scheme=scheme, **reserve))
             if fixed is not None:
                 sent_e += send_fixed_labels(evaluator, sid, seed, delta, fixed, todo)
             sent_g = garbler.conn.write(messages.make(
                 "garble_request", sid=sid, circuit=circuit_id, hash=chash, seed=seed,
-                delta=labels_to_bytes(delta), key=key, scheme=scheme, **owner,
+                delta=labels_to_bytes(delta), key=key, scheme=scheme, **reserve, **owner,
                 **_replica(evaluator)))
             await asyncio.gather(evaluator.conn.drain(), garbler.conn.drain())
         except ConnectionClosed:

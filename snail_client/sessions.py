@@ -14,12 +14,14 @@ from snail_common.gc import active_input_labels
 from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net.chunks import runs, write_labels
 from snail_common.net.conn import parse_addr
+from snail_common.net.errors import BUSY, EVICTED
 
 from .links import Inbox, Link
 
 LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
          "evaluator_to_client", "garbler_to_client")
 OWNER_LINKS = ("garbler_to_mapowner", "mapowner_to_garbler")  # map-owner circuits only
+ROOMLESS = frozenset({BUSY, EVICTED})  # a server's answers to a client that holds too much
 
 
 @dataclass
@@ -64,6 +66,12 @@ class Prepared:
     def usable(self) -> bool:
         return (self.garbler.alive and self.evaluator.alive
                 and not self.to_g.failed and not self.to_e.failed)
+
+    @property
+    def refused(self) -> bool:
+        """A server had no room for it (busy) or gave its place to a live session
+        (evicted): the client holds more ahead than the servers can spare."""
+        return bool({self.to_g.error_code, self.to_e.error_code} & ROOMLESS)
 
 
 Address = str | tuple[str, int]

@@ -63,25 +63,32 @@ class ClientSide:
                       size: int) -> Session | None:
         """The client's half of a session (None if refused: the client was told)."""
         sid = msg["sid"]
+        s = self.sessions.get(sid)
+        if s is not None and s.client is not None:
+            conn.post(messages.error(DUPLICATE_SESSION, "session id already in use", sid))
+            return None
         try:
-            s = self.sessions.get(sid)
             if s is None:
                 s = self._open(msg, size, conn.peer_name)
-            elif s.client is not None:
-                raise ProtocolError(DUPLICATE_SESSION, "session id already in use")
-            else:
+            else:  # the garbler's half came first
                 self._check_same(s, msg)
-                self.claim(conn.peer_name)  # the garbler's half came first
+                self.claim(s.slot, conn.peer_name)
+                if not msg.get("ahead"):
+                    self.slots.live(s.slot)
                 s.peer = conn.peer_name
                 s.bytes_in += size
-            s.client = conn
         except ProtocolError as exc:
             conn.post(messages.error(exc.code, exc.message, sid))
+            if s is not None:  # its garbler half is told too, and the slot freed
+                self._fail(s, exc)
+                return None
+            self.remember_ended(sid, exc)
             if exc.code in (BUSY, DRAINING):  # refused for want of a slot: one line
                 self.log_session(peer=conn.peer_name, sid=sid, circuit=msg["circuit"],
                                  n_and=0, bytes_in=size, bytes_out=0, seconds=0.0,
                                  outcome=exc.code, reason=exc.message)
             return None
+        s.client = conn
         return s
 
     async def _client_load(self, s: Session) -> None:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections import OrderedDict
 from typing import Any
 
 import numpy as np
@@ -36,7 +37,7 @@ import numpy as np
 from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net import messages
 from snail_common.net.conn import Connection
-from snail_common.net.errors import BAD_REQUEST, TIMEOUT, ProtocolError
+from snail_common.net.errors import BAD_REQUEST, EVICTED, TIMEOUT, ProtocolError
 from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
 
@@ -46,6 +47,8 @@ from .owner import EarlyOwnerLabels
 from .session import Session, consume_failure
 from .tables import GarblerSide
 
+ENDED_KEPT = 4096  # sids of ended or refused sessions remembered (remember_ended)
+
 
 class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
     role = "evaluator"
@@ -54,6 +57,7 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
     def __init__(self, options: Options, logger: logging.Logger) -> None:
         super().__init__(options, logger)
         self.sessions: dict[bytes, Session] = {}
+        self.ended: OrderedDict[bytes, ProtocolError] = OrderedDict()  # sid -> why
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
         self.owner_early = EarlyOwnerLabels()
 
@@ -68,10 +72,15 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
 
     # ---- session bookkeeping ---------------------------------------------------------------
     def _open(self, msg: dict[str, Any], size: int, peer: str = "") -> Session:
-        self.admit(peer)
+        """A new session from whichever half came first (``peer``: the client's name when
+        it is the client's), or ProtocolError (busy, draining). A reservation's
+        (``ahead``) place may be taken by a live session: it then fails as evicted."""
         s = Session(msg["sid"], msg["circuit"], msg["hash"],
                     asyncio.get_running_loop().create_future(), peer=peer, bytes_in=size,
                     scheme=msg.get("scheme", DEFAULT_SCHEME))
+        s.slot = self.admit(peer, bool(msg.get("ahead")), evict=lambda: self._fail(
+            s, ProtocolError(EVICTED, "a live session took the place of this one, garbled "
+                                      "ahead (busy evaluator)")))
         s.ready.add_done_callback(consume_failure)
         self.sessions[s.sid] = s
         return s
@@ -111,6 +120,7 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
         if self.sessions.get(s.sid) is not s:
             return
         del self.sessions[s.sid]
+        self.remember_ended(s.sid, exc)
         s.failure = exc
         if s.watchdog:
             s.watchdog.cancel()
@@ -118,11 +128,19 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
             s.ready.set_exception(exc)
         if s.client is not None:
             s.client.post(messages.error(exc.code, exc.message, s.sid))
-        self.finish(s.peer, s.record(exc.code, exc.message))
+        self.finish(s.slot, s.record(exc.code, exc.message))
+
+    def remember_ended(self, sid: bytes, exc: ProtocolError) -> None:
+        """A session that failed, or whose client half was refused: a garbler half that
+        still comes for it is told at once (tables.py), not held for a client that
+        never shows up."""
+        self.ended[sid] = exc
+        while len(self.ended) > ENDED_KEPT:
+            self.ended.popitem(last=False)
 
     def _complete(self, s: Session) -> None:
         del self.sessions[s.sid]
-        self.finish(s.peer, s.record(OK))
+        self.finish(s.slot, s.record(OK))
 
     def _check_same(self, s: Session, msg: dict[str, Any]) -> None:
         if (msg["circuit"], msg["hash"]) != (s.circuit, s.hash):
@@ -149,6 +167,7 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
         """Start evaluating once the client's labels (and the map owner's) are in."""
         if s.failure is None and s.labels.complete and not s.ready.done() and (
                 s.owner is None or s.owner.complete):
+            self.slots.live(s.slot)  # in use now: a reservation no more
             inputs = s.labels.labels()
             s.ready.set_result(inputs if s.owner is None
                                else np.concatenate([inputs, s.owner.labels()]))
@@ -169,8 +188,8 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
                                                   "evaluator"):
                 return
 
-    def finish(self, peer: str, record: dict) -> None:
+    def finish(self, slot, record: dict) -> None:
         """A session ended: map-owner labels still waiting for it go too."""
         self.owner_early.drop(record["sid"])
-        super().finish(peer, record)
+        super().finish(slot, record)
 

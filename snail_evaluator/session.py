@@ -12,6 +12,7 @@ from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net.chunks import LabelAssembler
 from snail_common.net.conn import Connection
 from snail_common.net.errors import ProtocolError
+from snail_common.net.slots import Slot
 
 # largest circuit's inputs (n = 4096 points take about 10 MB), far below a memory risk
 MAX_EARLY_LABEL_BYTES = 64 << 20
@@ -32,6 +33,7 @@ class Session:
     started: float = field(default_factory=time.monotonic)
     watchdog: asyncio.TimerHandle | None = None
     peer: str = ""  # the client's certificate name, once its half has arrived
+    slot: Slot | None = None  # its place among the daemon's sessions
     n_and: int = 0
     bytes_in: int = 0
     bytes_out: int = 0

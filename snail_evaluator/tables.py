@@ -31,6 +31,15 @@ from .lanes import EvalLane, Solo
 from .session import Session
 
 
+class StreamCut(Exception):
+    """A session ended mid-stream for a reason of its own (its client, a timeout, an
+    eviction, the garbler's ``error``): the stream itself is sound."""
+
+    def __init__(self, garbler_ended: bool) -> None:
+        super().__init__("the session ended before its stream")
+        self.garbler_ended = garbler_ended  # the garbler's error {sid} ended it
+
+
 class GarblerSide:
     """The evaluator's garbler connections."""
 
@@ -49,8 +58,16 @@ class GarblerSide:
         sid = msg["sid"]
         s = self.sessions.get(sid)
         if s is None:
-            # the garbler came first; ProtocolError (busy) closes conn
-            s = self._open(msg, size)
+            ended = self.ended.get(sid)
+            if ended is not None:  # its client's half failed or was refused already
+                await self._end_stream(conn, sid, ended)
+                return
+            try:
+                s = self._open(msg, size)  # the garbler came first
+            except ProtocolError as exc:  # busy, draining: the stream ends unread
+                self.remember_ended(sid, exc)
+                await self._end_stream(conn, sid, exc)
+                return
         elif s.garbler:
             raise ProtocolError(DUPLICATE_SESSION, "session id already streaming")
         else:
@@ -71,6 +88,11 @@ class GarblerSide:
             t_done = time.monotonic()
             s.timeline["eval_end"] = time.time()
             outputs = ev.output_labels()
+            if s.failure is not None:  # cancelled while the last frame was evaluated
+                raise StreamCut(garbler_ended=False)
+        except StreamCut as cut:  # the session ended, the stream is sound: keep the link
+            await self._end_stream(conn, sid, s.failure, answered=cut.garbler_ended)
+            return
         except ProtocolError as exc:
             self._fail(s, ProtocolError(exc.code, f"the garbler's table stream: {exc.message}"))
             raise ProtocolError(exc.code, exc.message) from None  # closes the garbler conn
@@ -81,8 +103,6 @@ class GarblerSide:
         except asyncio.CancelledError:
             self._fail(s, ProtocolError(ABORTED, "the evaluator is shutting down"))
             raise
-        if s.failure is not None:  # cancelled while the last frame was evaluated
-            raise ProtocolError(s.failure.code, s.failure.message)
         # the garbler may have stopped waiting for this (it times out, or went): the
         # result is still the client's, and the session must end either way
         with contextlib.suppress(ConnectionClosed):
@@ -101,6 +121,26 @@ class GarblerSide:
         with contextlib.suppress(ConnectionClosed):
             await s.client.drain()
         await conn.drain()
+
+    async def _end_stream(self, conn: Connection, sid: bytes, why: ProtocolError,
+                          answered: bool = False) -> None:
+        """A session ended before its stream did (refused, cancelled, evicted, timed
+        out): tell the garbler why, and unless its own ``error`` {sid} already ``answered``
+        that, read on (discarding the session's frames) until it comes: the connection
+        is then in step for the next session (snail_garbler/streams.py)."""
+        conn.post(messages.error(why.code, why.message, sid))
+        while not answered:
+            msg, _ = await conn.recv(self.options.session_timeout)
+            if msg["t"] == "tables" and msg["sid"] == sid:
+                if isinstance(msg["data"], memoryview):
+                    conn.recycle(msg["data"])
+                continue
+            if msg["t"] != "error" or msg.get("sid") != sid:
+                raise ProtocolError(UNEXPECTED, f"the garbler sent {msg['t']} after the "
+                                                f"end of the session it was streaming")
+            answered = True
+        with contextlib.suppress(ConnectionClosed):
+            await conn.drain()
 
     async def _evaluate(self, conn: Connection, s: Session, schedule: Schedule,
                         ) -> tuple[Solo | EvalLane, int, int, float, float]:
@@ -126,7 +166,9 @@ class GarblerSide:
         recv: asyncio.Future | None = None
         try:
             while ev is None or not ev.stream_complete:
-                if ev is None and s.ready.done():  # raises the session's failure, if any
+                if s.failure is not None:  # its client cancelled, a timeout, an eviction
+                    raise StreamCut(garbler_ended=False)
+                if ev is None and s.ready.done():
                     ev = (await self.lanes.lane(s.circuit, schedule, s.ready.result())
                           if laned else Solo(schedule, s.ready.result(), scheme_id(s.scheme)))
                     if s.watchdog:
@@ -156,10 +198,14 @@ class GarblerSide:
                 recv = None
                 received += size
                 s.bytes_in += size
+                if msg["t"] == "error" and msg.get("sid") == s.sid:  # it ended the stream
+                    self._fail(s, ProtocolError(msg["code"], f"the garbler reported: "
+                                                             f"{msg['message']}"))
+                    raise StreamCut(garbler_ended=True)
                 if s.failure is not None:
-                    raise ProtocolError(s.failure.code, s.failure.message)
-                if msg["t"] == "error":
-                    raise ProtocolError(msg["code"], f"the garbler reported: {msg['message']}")
+                    if msg["t"] == "tables" and isinstance(msg["data"], memoryview):
+                        conn.recycle(msg["data"])
+                    raise StreamCut(garbler_ended=False)
                 if msg["t"] != "tables" or msg["sid"] != s.sid:
                     raise ProtocolError(UNEXPECTED, f"expected tables of this session, the "
                                                     f"garbler sent {msg['t']}")

@@ -12,9 +12,14 @@ key} per invocation; requests run concurrently (up to ``--max-sessions``). For e
    evaluator falls behind, so a session holds a few MiB at most;
 3. send the client the output zero-labels (``output_zero_labels`` chunks) and a ``stats``
    message with the bytes sent to the evaluator and timings;
-4. wait for the evaluator's ``done`` {sid} before the connection goes back to the pool; an
-   ``error`` instead (or any failure mid-stream) closes that connection, since a cut
-   stream cannot be resumed.
+4. the evaluator's verdict (``done`` {sid}, or ``error`` {sid}) is awaited with the
+   connection, not the session (streams.py): a reservation's tables may wait at the
+   evaluator for minutes, its slot here is free once they are sent. A session that ends
+   early on either side leaves the connection in step; only a broken one is closed.
+
+A request with ``ahead`` is a reservation (garbled before its client needs it): it is
+admitted only where there is room, and a live request that meets a full garbler takes
+its place (snail_common/net/slots.py); the reservation's client hears ``evicted``.
 
 Failures reach the client as ``error`` {sid, code, message}. A client's ``error`` {sid}
 cancels its session; a client that disconnects cancels all of its sessions. The garbler
@@ -42,15 +47,15 @@ from snail_common.gc.stream import (
 )
 from snail_common.net import messages
 from snail_common.net.chunks import write_labels
-from snail_common.net.conn import Connection, connect, format_addr
+from snail_common.net.conn import Connection, format_addr
 from snail_common.net.errors import (
     ABORTED,
     BAD_REQUEST,
     DUPLICATE_SESSION,
+    EVICTED,
     INTERNAL,
     PEER_LOST,
     TIMEOUT,
-    UNEXPECTED,
     ConnectionClosed,
     ProtocolError,
     RemoteError,
@@ -65,11 +70,12 @@ from snail_common.net.tcpinfo import read as tcp_info
 
 from .lanes import LaneBatcher, LaneView
 from .owner import OwnerInputs
+from .streams import State, TableLink, TableLinks
 
-MAX_IDLE = 8  # pooled idle connections to the evaluator
 # why a session task was cancelled, as its log line and the client's error say
 CANCELLED_BY_CLIENT = "cancelled by the client"
 CLIENT_LEFT = "the client disconnected"
+EVICTED_REASON = "a live session took the place of this one, garbled ahead (busy garbler)"
 SHUTTING_DOWN = "the garbler is shutting down"
 INLINE_INPUTS = 1 << 14
 # frame sizing: aim for a frame every ~2 ms of garbling so that the evaluator overlaps
@@ -109,10 +115,12 @@ class GarblerDaemon(Daemon):
                  evaluators: tuple[Address, ...], client_ctx,
                  map_owners: tuple[Address, ...]) -> None:
         super().__init__(options, logger)
-        # the only evaluators this garbler dials: what its operator's names resolve to
-        self.evaluators = Replicas(evaluators, "--evaluator", "evaluator")
-        self.client_ctx = client_ctx  # TLS context for the link to the evaluator
-        self.idle: dict[Address, list[Connection]] = {}  # pooled, per evaluator replica
+        # the only evaluators this garbler dials: what its operator's names resolve to;
+        # a reservation's verdict may come once its client's labels did, which the
+        # evaluator awaits up to its --idle-timeout
+        self.links = TableLinks(Replicas(evaluators, "--evaluator", "evaluator"), client_ctx,
+                                options.handshake_timeout,
+                                options.session_timeout + options.idle_timeout, logger)
         self.table_streams: set[Connection] = set()  # sessions' tables under way
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
         self.owners = OwnerInputs(client_ctx, options.handshake_timeout, map_owners)
@@ -157,14 +165,16 @@ class GarblerDaemon(Daemon):
         sid, t0, t_wall, peer = req["sid"], time.monotonic(), time.time(), client.peer_name
         record = {"sid": sid, "circuit": req["circuit"], "n_and": 0, "bytes_in": size,
                   "bytes_out": 0, "seconds": 0.0, "outcome": OK}
-        try:
-            self.admit(peer)  # here, not in _start: a task cancelled unstarted holds no slot
+        task = asyncio.current_task()
+        try:  # here, not in _start: a task cancelled unstarted holds no slot
+            slot = self.admit(peer, bool(req.get("ahead")),
+                              evict=lambda: task.cancel(EVICTED_REASON))
         except ProtocolError as exc:
             self._fail(client, sid, exc.code, exc.message)
             self.log_session(peer=peer, **record | {"outcome": exc.code,
                                                     "reason": exc.message})
             return
-        sent, running = 0, False
+        sent, running, link = 0, False, None
         try:
             circuit, schedule = await self.circuit(req["circuit"], req["hash"])
             record["n_and"] = schedule.n_and
@@ -173,57 +183,50 @@ class GarblerDaemon(Daemon):
             except ValueError as exc:
                 raise ProtocolError(BAD_REQUEST, f"field 'delta': {exc}") from None
             # the replica the client talks to, if the operator's names reach it
-            where, evaluator = await self._acquire(req)
+            link = await self.links.acquire(req.get("evaluator"), req.get("evaluator_id"))
+            owner = await self.owners.feed(req, circuit, self.options.session_timeout,
+                                           (format_addr(*link.where),
+                                            link.conn.info.get("instance")))
+            scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
+            record["scheme"] = req.get("scheme", DEFAULT_SCHEME)
+            block, frame = frame_plan(schedule, scheme, self.engine.get("engine", "numpy"))
+            garbler = None
+            if scheme == SCHEME_HALF_GATES:  # lanes run half-gates only
+                garbler = await self.lanes.lane(req["circuit"], schedule, req["seed"],
+                                                req["delta"], req["key"], block, frame,
+                                                client)
+                running = True  # a run the batcher counts until it is released
+            if garbler is None:
+                make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
+                                         req["key"], block_gates=block,
+                                         frame_bytes=frame, scheme=scheme)
+                # deriving the input labels is AES over the inputs: inline unless large
+                garbler = (make() if schedule.n_inputs < INLINE_INPUTS
+                           else await self.work(make))
+            t_ready = time.monotonic()
+            self._streaming(link.conn, True)
             try:
-                owner = await self.owners.feed(req, circuit, self.options.session_timeout,
-                                               (format_addr(*where),
-                                                evaluator.info.get("instance")))
-                scheme = scheme_id(req.get("scheme", DEFAULT_SCHEME))
-                record["scheme"] = req.get("scheme", DEFAULT_SCHEME)
-                block, frame = frame_plan(schedule, scheme,
-                                          self.engine.get("engine", "numpy"))
-                garbler = None
-                if scheme == SCHEME_HALF_GATES:  # lanes run half-gates only
-                    garbler = await self.lanes.lane(req["circuit"], schedule, req["seed"],
-                                                    req["delta"], req["key"], block, frame,
-                                                    client)
-                    running = True  # a run the batcher counts until it is released
-                if garbler is None:
-                    make = functools.partial(Garbler, schedule, req["seed"], req["delta"],
-                                             req["key"], block_gates=block,
-                                             frame_bytes=frame, scheme=scheme)
-                    # deriving the input labels is AES over the inputs: inline unless large
-                    garbler = (make() if schedule.n_inputs < INLINE_INPUTS
-                               else await self.work(make))
-                t_ready = time.monotonic()
-                self._streaming(evaluator, True)
-                try:
-                    sent, answered, timeline = await self._stream(evaluator, garbler, req)
-                finally:
-                    self._streaming(evaluator, False)
-                t_streamed = time.monotonic()
-                lanes = getattr(garbler, "lanes", 1)
-                cpu_s = timeline.pop("cpu_s")
-                if lanes == 1:  # a lane's thread may have garbled for the others
-                    self.rates.garbled(scheme, schedule.n_and, cpu_s)
-                self.rates.streamed(tcp_info(evaluator.socket), [
-                    tcp_info(c.socket) for c in self.table_streams if c.peer == evaluator.peer])
-                self._advise()
-                timeline["request"] = t_wall
-                record["timeline"] = timeline
-                replied = self._reply(client, sid, garbler, sent, {
-                    "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
-                    "lanes": float(lanes), **{f"t_{k}": v for k, v in timeline.items()},
-                    **self.rates.report()}, owner)
-                if not answered:  # the client need not wait for this; a garbled-ahead
-                    # session's verdict comes once its client's labels did, which the
-                    # evaluator awaits up to its --idle-timeout while the client is busy
-                    await self._verdict(evaluator, sid, self.options.session_timeout
-                                        + self.options.idle_timeout)
-            except BaseException:
-                evaluator.abort()
-                raise
-            self._release(where, evaluator)
+                sent, timeline = await self._stream(link, garbler, req)
+            finally:
+                self._streaming(link.conn, False)
+            t_streamed = time.monotonic()
+            lanes = getattr(garbler, "lanes", 1)
+            cpu_s = timeline.pop("cpu_s")
+            if lanes == 1:  # a lane's thread may have garbled for the others
+                self.rates.garbled(scheme, schedule.n_and, cpu_s)
+            self.rates.streamed(tcp_info(link.conn.socket), [
+                tcp_info(c.socket) for c in self.table_streams if c.peer == link.conn.peer])
+            self._advise()
+            timeline["request"] = t_wall
+            record["timeline"] = timeline
+            replied = record["bytes_out"] = self._reply(client, sid, garbler, sent, {
+                "prepare_s": t_ready - t0, "garble_s": t_streamed - t_ready,
+                "lanes": float(lanes), **{f"t_{k}": v for k, v in timeline.items()},
+                **self.rates.report()}, owner)
+            # the evaluator's verdict may come much later (a reservation's tables wait
+            # for its client's labels): it is awaited with the link, not with this slot
+            self.links.end(link, sid, OK, "")
+            link = None
             if replied:
                 with contextlib.suppress(ConnectionClosed):
                     await client.drain()
@@ -237,21 +240,22 @@ class GarblerDaemon(Daemon):
         except TimeoutError as exc:
             record.update(self._fail(client, sid, TIMEOUT, str(exc)))
         except asyncio.CancelledError as exc:  # the reason is in the cancel, if any
-            record.update(self._fail(client, sid, ABORTED,
-                                     exc.args[0] if exc.args else SHUTTING_DOWN))
+            reason = exc.args[0] if exc.args else SHUTTING_DOWN
+            record.update(self._fail(client, sid, EVICTED if reason == EVICTED_REASON
+                                     else ABORTED, reason))
             raise
         except Exception as exc:  # a bug: the client must still hear of it
             self.log.exception("session_bug", extra={"snail_fields": {"sid": sid.hex()}})
             record.update(self._fail(client, sid, INTERNAL,
                                      f"internal error in the garbler: {exc!r}"))
-        else:
-            record["bytes_out"] = replied
         finally:
+            if link is not None:  # ended early: the evaluator hears why (streams.py)
+                self.links.end(link, sid, record["outcome"], record.get("reason", ""))
             if running:
                 self.lanes.release(req["circuit"], client)
             record["bytes_out"] += sent
             record["seconds"] = time.monotonic() - t0
-            self.finish(peer, record)
+            self.finish(slot, record)
 
     def _advise(self) -> None:
         """Once the link is measured: log what this host's TCP settings cost the table
@@ -284,57 +288,43 @@ class GarblerDaemon(Daemon):
         client.post(messages.error(code, message, sid))
         return {"outcome": code, "reason": message}
 
-    async def _stream(self, evaluator: Connection, garbler: Garbler | LaneView,
-                      req: dict[str, Any]) -> tuple[int, bool, dict[str, float]]:
+    async def _stream(self, link: TableLink, garbler: Garbler | LaneView,
+                      req: dict[str, Any]) -> tuple[int, dict[str, float]]:
         """Send session_start and every table frame; garbling of the next frame overlaps
-        the sending of this one. Returns the bytes sent, whether the evaluator has
-        already answered ``done`` (it may finish before the garbler's loop does) and the
-        session's timeline: when the last frame was garbled and the first and last
-        handed to the kernel (epoch seconds), and ``cpu_s``, the garbling threads' CPU."""
+        the sending of this one. Returns the bytes sent and the session's timeline: when
+        the last frame was garbled and the first and last handed to the kernel (epoch
+        seconds), and ``cpu_s``, the garbling threads' CPU. An ``error`` from the
+        evaluator mid-stream raises RemoteError with the link in step (streams.py)."""
         sid, timeout = req["sid"], self.options.session_timeout
-        sent = evaluator.write(messages.make("session_start", sid=sid, circuit=req["circuit"],
-                                             hash=req["hash"],
-                                             scheme=req.get("scheme", DEFAULT_SCHEME)))
+        evaluator = link.conn
+        sent = link.start(messages.make("session_start", sid=sid, circuit=req["circuit"],
+                                        hash=req["hash"],
+                                        scheme=req.get("scheme", DEFAULT_SCHEME),
+                                        **({"ahead": True} if req.get("ahead") else {})))
         frames = garbler.frames()
         clock = {"cpu_s": 0.0}
         pending = self.submit(_timed_next, frames, clock)
-        answered = False
         timeline: dict[str, float] = {}
         try:
             while (data := await pending) is not None:
-                if answered:
-                    raise ProtocolError(UNEXPECTED, "the evaluator finished before the "
-                                                    "last table frame")
+                if not evaluator.idle:  # the evaluator spoke: it ended the session
+                    await link.verdict(sid, timeout)
                 pending = self.submit(_timed_next, frames, clock)
                 timeline.setdefault("first_sent", time.time())
                 sent += evaluator.write(messages.make("tables", sid=sid, data=data))
                 try:
                     await asyncio.wait_for(evaluator.drain(), timeout)
                 except asyncio.TimeoutError:
+                    link.state = State.BROKEN
                     raise TimeoutError(f"the evaluator took no tables for {timeout:g} s") \
                         from None
                 timeline["last_sent"] = time.time()  # in the kernel's send buffer
-                if not evaluator.idle:  # the evaluator spoke: done, or it gave up
-                    await self._verdict(evaluator, sid, timeout)
-                    answered = True
+            link.state = State.SENT
             timeline["garbled"] = clock.get("garbled", time.time())
         finally:
             if not pending.done():  # let the garbling thread finish with the generator
                 await asyncio.gather(pending, return_exceptions=True)
-        return sent, answered, {**timeline, "cpu_s": clock["cpu_s"]}
-
-    async def _verdict(self, evaluator: Connection, sid: bytes, timeout: float) -> None:
-        """The evaluator's answer for ``sid`` within ``timeout``: ``done`` returns,
-        ``error`` raises (a ``bye`` means it is shutting down)."""
-        msg, _ = await evaluator.recv(timeout)
-        if msg["t"] == "error":
-            raise RemoteError(msg["code"], msg["message"], msg.get("sid"))
-        if msg["t"] == "bye":
-            raise ConnectionClosed("the evaluator is shutting down")
-        if msg["t"] != "done":
-            raise ProtocolError(UNEXPECTED, f"the evaluator sent {msg['t']} mid-session")
-        if msg["sid"] != sid:
-            raise ProtocolError(UNEXPECTED, "the evaluator finished another session")
+        return sent, {**timeline, "cpu_s": clock["cpu_s"]}
 
     def _streaming(self, evaluator: Connection, under_way: bool) -> None:
         """Start or end a session's table stream on its own (taken, never shared)
@@ -345,37 +335,14 @@ class GarblerDaemon(Daemon):
             self.table_streams.discard(evaluator)
         self.counters["streaming"] = len(self.table_streams)
 
-    async def _acquire(self, req: dict[str, Any]) -> tuple[Address, Connection]:
-        """A connection to the evaluator replica the request names (snail_common.net.
-        replicas: forbidden outside this garbler's --evaluator names)."""
-        return await self.evaluators.locate(req.get("evaluator"), req.get("evaluator_id"),
-                                            "evaluator", self._take, self._release)
-
-    async def _take(self, addr: Address) -> Connection:
-        """A pooled idle connection to the replica at ``addr``, else a new one."""
-        pool = self.idle.get(addr, [])
-        while pool:
-            conn = pool.pop()
-            if conn.idle:
-                return conn
-            await conn.close()  # something arrived while idle (a bye): not reusable
-        return await connect(*addr, self.client_ctx, "garbler", "evaluator",
-                             self.options.handshake_timeout,
-                             server_name=self.evaluators.server_name(addr))
-
-    def _release(self, addr: Address, conn: Connection) -> None:
-        pool = self.idle.setdefault(addr, [])
-        if conn.idle and len(pool) < MAX_IDLE and not self.stopping.is_set():
-            pool.append(conn)
-        else:
-            conn.abort()
+    def under_way(self) -> bool:
+        """Sessions, and streams whose verdict is due: a reservation's tables at the
+        evaluator still wait for its client (draining lets them be used)."""
+        return super().under_way() or self.links.settling > 0
 
     async def shutdown_extra(self) -> None:
         await self.owners.close()
-        idle = [conn for pool in self.idle.values() for conn in pool]
-        self.idle.clear()
-        await asyncio.gather(*(c.close(messages.make("bye")) for c in idle),
-                             return_exceptions=True)
+        await self.links.close()
 
 
 def _timed_next(frames: Iterator[bytes | memoryview], clock: dict[str, float]

@@ -110,7 +110,7 @@ class MapOwnerDaemon(Daemon):
                       size: int) -> None:
         """One frame: the table of every point under this frame's fresh pads."""
         t0, frame = time.monotonic(), secrets.token_bytes(16)
-        self.admit(conn.peer_name)
+        slot = self.admit(conn.peer_name)
         record = {"sid": frame, "circuit": NO_CIRCUIT, "n_and": 0, "bytes_in": size,
                   "bytes_out": 0, "seconds": 0.0, "outcome": OK}
         try:
@@ -131,7 +131,7 @@ class MapOwnerDaemon(Daemon):
             raise
         finally:
             record["seconds"] = time.monotonic() - t0
-            self.finish(conn.peer_name, record)
+            self.finish(slot, record)
 
     def _keep(self, frame: bytes, pads: np.ndarray) -> None:
         self.frames[frame] = pads
@@ -179,7 +179,7 @@ class MapOwnerDaemon(Daemon):
         sid, t0 = msg["sid"], time.monotonic()
         record = {"sid": sid, "circuit": NO_CIRCUIT, "n_and": 0, "bytes_in": size,
                   "bytes_out": 0, "seconds": 0.0, "outcome": OK}
-        self.admit()
+        slot = self.admit()
         started = False  # once OT messages flow, a failure leaves this link out of step
         try:
             bits = self._pad_bits(msg)
@@ -205,7 +205,7 @@ class MapOwnerDaemon(Daemon):
             raise
         finally:
             record["seconds"] = time.monotonic() - t0
-            self.finish("", record)
+            self.finish(slot, record)
 
     async def _locate(self, msg: dict[str, Any]) -> tuple[Address, Connection]:
         """The link to the evaluator replica the garbler named, if this map owner's

@@ -342,12 +342,11 @@ def test_a_daemon_lets_its_recycled_bodies_go_once_idle(monkeypatch):
     async def run() -> tuple[int, int]:
         daemon = service.Daemon(service.Options(workers=1), logging.getLogger("test"))
         daemon.bodies.give(bytearray(1 << 20))
-        daemon.counters["active"] = 1
-        daemon.finish("", record)  # idle now ...
-        daemon.counters["active"] = 1  # ... but the next session starts at once
+        daemon.finish(daemon.admit(), record)  # idle now ...
+        slot = daemon.admit()  # ... but the next session starts at once
         await asyncio.sleep(0.1)
         kept = daemon.bodies.held
-        daemon.finish("", record)
+        daemon.finish(slot, record)
         await asyncio.sleep(0.1)
         daemon.pool.shutdown()
         return kept, daemon.bodies.held

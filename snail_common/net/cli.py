@@ -49,7 +49,9 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
         click.option("-q", "--quiet", is_flag=True, help="Same as --log-level warning."),
         click.option("--max-sessions", type=click.IntRange(1, 100_000),
                      default=defaults.max_sessions, show_default=True,
-                     help="Concurrent sessions before new ones are refused as busy."),
+                     help="Concurrent sessions, reservations (garbled ahead) included. "
+                          "At the limit a live session takes a reservation's place; it is "
+                          "refused as busy only when none is left."),
         click.option("--session-timeout", type=click.FloatRange(0.1, 3600),
                      default=defaults.session_timeout, show_default=True,
                      help="Seconds a session may wait for its peer's next message."),
@@ -91,6 +93,13 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      default=defaults.max_sessions_per_peer, show_default=True,
                      help="Concurrent sessions one client certificate name may hold "
                           "(clients sharing a certificate share it); more are busy."),
+        click.option("--max-ahead-per-peer", type=click.IntRange(0, 100_000),
+                     default=defaults.max_ahead_per_peer, show_default=True,
+                     help="Of a client certificate name's sessions, how many may be "
+                          "reservations (garbled ahead of need). A live session that "
+                          "meets a full daemon takes a reservation's place (the client "
+                          "holding the most loses its newest, as 'evicted'); more "
+                          "reservations than this are refused as busy."),
         click.option("--max-connections-per-peer", type=click.IntRange(1, 100_000),
                      default=defaults.max_connections_per_peer, show_default=True,
                      help="Open connections one client certificate name may hold."),
@@ -127,6 +136,7 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    idle_timeout=kwargs["idle_timeout"],
                    handshake_timeout=kwargs["handshake_timeout"],
                    max_sessions_per_peer=kwargs["max_sessions_per_peer"],
+                   max_ahead_per_peer=kwargs["max_ahead_per_peer"],
                    max_connections_per_peer=kwargs["max_connections_per_peer"],
                    tls_dir=kwargs["tls_dir"], metrics=kwargs["metrics"])
 

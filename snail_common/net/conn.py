@@ -336,6 +336,9 @@ async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_r
     except (TimeoutError, ConnectionClosed, ProtocolError, RemoteError) as exc:
         conn.abort()
         raise ConnectionClosed(f"opening a session with {where} failed: {exc}") from None
+    except BaseException:  # cancelled mid-opening (its session was): the socket goes too
+        conn.abort()
+        raise
     return conn
 
 

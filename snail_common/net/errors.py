@@ -18,6 +18,7 @@ BAD_REQUEST = "bad_request"  # well-formed but invalid values (delta parity, lab
 DUPLICATE_SESSION = "duplicate_session"
 BUSY = "busy"  # max sessions reached
 DRAINING = "draining"  # stopping (SIGTERM): finishes its sessions, takes no new ones
+EVICTED = "evicted"  # a reservation (garbled ahead) whose place a live session took
 TIMEOUT = "timeout"
 PEER_LOST = "peer_lost"  # the other server went away mid-session
 ABORTED = "aborted"  # cancelled by a peer

@@ -85,6 +85,10 @@ class Listener:
     async def shutdown_extra(self) -> None:
         """Close what the subclass owns (e.g. pooled outgoing connections)."""
 
+    def under_way(self) -> bool:
+        """Whether work a peer still counts on is under way (draining waits for it)."""
+        return bool(self.counters["active"])
+
     # ---- connections ---------------------------------------------------------------------
     def _opened(self, conn: Connection) -> None:
         """A TLS connection is up (handshake done): serve it in its own task."""
@@ -173,7 +177,7 @@ class Listener:
         if self.interrupted:
             server.close()
         deadline = time.monotonic() + (0 if self.interrupted else self.options.grace)
-        while self.counters["active"] and time.monotonic() < deadline:
+        while self.under_way() and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
         server.close()
         if scrapes is not None:

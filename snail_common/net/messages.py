@@ -14,7 +14,10 @@ client -> garbler            ``garble_request``, ``error`` (cancels a sid), ``he
 client -> evaluator          ``session_start``, ``input_labels``, ``error``, ``health_request``,
                              ``bye``
 garbler -> evaluator         ``session_start``, ``tables`` ... (one session at a time per
-                             connection); evaluator answers ``done`` or ``error``
+                             connection); evaluator answers ``done`` or ``error``; an
+                             ``error`` {sid} from either side ends that session's
+                             stream early, answered by the other side's ``error`` {sid}
+                             (snail_garbler/streams.py)
 garbler -> client            ``output_zero_labels`` chunks, then ``stats``; or ``error``
 evaluator -> client          ``output_labels`` chunks, then ``stats``; or ``error``
 server -> anyone             ``health`` (reply to ``health_request``), ``error``, ``bye``
@@ -38,6 +41,8 @@ circuit takes map-owner inputs, and names the evaluator replica the client talks
 of its ``capabilities``); the garbler streams to that replica if its operator's
 ``--evaluator`` names reach it, else refuses ``forbidden`` (snail_common.net.replicas).
 ``map_invocation`` names the same replica to the map owner.
+``ahead`` (``garble_request``, ``session_start``) marks a reservation: a session garbled
+before its client needs it, which yields its place to a live one (snail_common.net.slots).
 
 The garbler never receives input labels and the evaluator never receives a seed or delta:
 there is no message carrying them to the wrong role. The map owner never receives a 2D
@@ -89,6 +94,11 @@ def text(max_len: int = MAX_TEXT) -> Validator:
         if not isinstance(v, str) or len(v) > max_len:
             _fail(name, f"a string of at most {max_len} characters", v)
     return check
+
+
+def flag(name: str, v: Any) -> None:
+    if type(v) is not bool:
+        _fail(name, "true or false", v)
 
 
 def count(name: str, v: Any) -> None:
@@ -160,10 +170,11 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
                       "families": text_list, "max_sessions": count},
                      {"max_and_gates": count, "instance": text(64)}),
     "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash},
-                      {"scheme": scheme}),
+                      {"scheme": scheme, "ahead": flag}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
                         "delta": key16, "key": key16},
-                       {"scheme": scheme, "frame": key16, "map_owner": text(MAX_ADDRESS),
+                       {"scheme": scheme, "ahead": flag, "frame": key16,
+                        "map_owner": text(MAX_ADDRESS),
                         "evaluator": text(MAX_ADDRESS), "evaluator_id": text(64)}),
     "input_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
     "tables": ({"sid": sid, "data": blob()}, {}),

@@ -15,11 +15,13 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-# sessions refused for lack of a slot, or by a draining daemon: not counted as failed
-from .errors import BUSY, DRAINING
+# sessions refused for lack of a slot, or by a draining daemon, and reservations given up
+# for a live session: not counted as failed
+from .errors import BUSY, DRAINING, EVICTED
 
 OK = "ok"
-GAUGES = ("active", "streaming", "queued_bytes")  # kept up to date by the daemon
+# kept up to date by the daemon; ``reserved``: of the active, those garbled ahead (slots.py)
+GAUGES = ("active", "reserved", "streaming", "queued_bytes")
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
@@ -48,10 +50,10 @@ class Metrics:
     def health(self) -> dict[str, int]:
         """The ``sessions`` field of the health message."""
         done, busy = self.sessions[OK], self.sessions[BUSY]
-        draining = self.sessions[DRAINING]
+        draining, evicted = self.sessions[DRAINING], self.sessions[EVICTED]
         return {**self.gauges, "connections": self.connections(), "done": done,
-                "failed": sum(self.sessions.values()) - done - busy - draining,
-                "busy": busy, "draining": draining,
+                "failed": sum(self.sessions.values()) - done - busy - draining - evicted,
+                "busy": busy, "draining": draining, "evicted": evicted,
                 "rejected": sum(self.refused.values()), "rss_bytes": rss_bytes()}
 
     def prometheus(self) -> str:
@@ -66,6 +68,8 @@ class Metrics:
 
         metric("sessions_active", "gauge", "Sessions under way.",
                [(role, self.gauges["active"])])
+        metric("sessions_reserved", "gauge", "Sessions garbled ahead of their client's need.",
+               [(role, self.gauges["reserved"])])
         metric("sessions_streaming", "gauge", "Sessions streaming garbled tables.",
                [(role, self.gauges["streaming"])])
         metric("connections", "gauge", "Open authenticated connections.",

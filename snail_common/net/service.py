@@ -17,7 +17,6 @@ import contextlib
 import logging
 import ssl
 import time
-from collections import Counter
 from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
@@ -32,7 +31,6 @@ from snail_common.gc.stream import BLOCK_GATES
 from . import messages
 from .conn import SOFTWARE, Connection
 from .errors import (
-    BUSY,
     CIRCUIT_MISMATCH,
     DRAINING,
     TIMEOUT,
@@ -49,6 +47,7 @@ from .listener import Listener
 from .logs import event
 from .metrics import OK
 from .options import Options
+from .slots import Slot, Slots
 
 T = TypeVar("T")
 BODIES_IDLE_S = 1.0  # recycled table frames are dropped once the daemon is idle this long
@@ -65,7 +64,8 @@ class Daemon(Listener):
         super().__init__(options, logger)
         self.pool = ThreadPoolExecutor(options.workers, thread_name_prefix=self.role)
         self._planned: dict[str, int] = {}  # circuit id -> id() of the planned schedule
-        self._peer_sessions: Counter[str] = Counter()
+        self.slots = Slots(self.role, options.max_sessions, options.max_sessions_per_peer,
+                           options.max_ahead_per_peer)
         self.heap = HeapTrimmer()
         self.engine: dict[str, str] = {}  # which garbling engine serves (use_engine)
 
@@ -160,39 +160,39 @@ class Daemon(Listener):
             return True
         raise ProtocolError(UNEXPECTED, refusal.format(kind))
 
-    def admit(self, peer: str = "") -> None:
-        """Count a new session (of client ``peer``, if known), or refuse it: as draining
-        when the daemon is stopping (SIGTERM: the client retries on another replica), as
-        busy when it is full or the peer holds its quota."""
+    def admit(self, peer: str = "", ahead: bool = False,
+              evict: Callable[[], None] | None = None) -> Slot:
+        """A slot for a new session (of client ``peer``, if known; ``ahead``: a
+        reservation, garbled before its client needs it), or ProtocolError: ``draining``
+        when the daemon is stopping (SIGTERM: the client retries on another replica),
+        ``busy`` when it is full (a live session first takes a reservation's place:
+        slots.py, whose ``evict`` ends that session)."""
         if self.stopping.is_set():
             raise ProtocolError(DRAINING, f"the {self.role} is draining (stopping): it "
                                           f"finishes its sessions and takes no new one")
-        if self.counters["active"] >= self.options.max_sessions:
-            raise ProtocolError(BUSY, f"the {self.role} runs its maximum of "
-                                      f"{self.options.max_sessions} sessions")
-        if peer:
-            self.claim(peer)
-        self.counters["active"] += 1
+        slot = self.slots.admit(peer, ahead, evict)
+        self._count_slots()
+        return slot
 
-    def claim(self, peer: str) -> None:
-        """Count a session against client ``peer``'s quota (BUSY beyond it)."""
-        if self._peer_sessions[peer] >= self.options.max_sessions_per_peer:
-            raise ProtocolError(BUSY, f"{peer} runs its maximum of "
-                                      f"{self.options.max_sessions_per_peer} sessions on "
-                                      f"the {self.role} (--max-sessions-per-peer)")
-        self._peer_sessions[peer] += 1
+    def claim(self, slot: Slot, peer: str) -> None:
+        """Count a session whose client half came second against client ``peer``'s quota
+        (BUSY beyond it)."""
+        self.slots.claim(slot, peer)
+        self._count_slots()
 
-    def finish(self, peer: str, record: dict[str, Any]) -> None:
-        """Free an admitted session and log its line (see ``log_session``)."""
-        self.counters["active"] -= 1
+    def finish(self, slot: Slot | None, record: dict[str, Any]) -> None:
+        """Free an admitted session's slot and log its line (see ``log_session``)."""
+        if slot is not None:
+            self.slots.release(slot)
+            self._count_slots()
         if not self.counters["active"]:  # still idle a moment later: give the frames back
             asyncio.get_running_loop().call_later(BODIES_IDLE_S, self._release_bodies)
         self.heap.session_ended()
-        if peer:
-            self._peer_sessions[peer] -= 1
-            if self._peer_sessions[peer] <= 0:
-                del self._peer_sessions[peer]
-        self.log_session(peer=peer, **record)
+        self.log_session(peer=slot.peer if slot is not None else "", **record)
+
+    def _count_slots(self) -> None:
+        self.counters["active"] = self.slots.active
+        self.counters["reserved"] = self.slots.reservations
 
     def _release_bodies(self) -> None:
         """An idle daemon keeps no recycled table frames: its memory follows its load (the
