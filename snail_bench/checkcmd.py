@@ -35,29 +35,34 @@ HARD_TARGETS = {("lm", "client"): 1.0, ("lm", "circuit"): 1.0, ("gn", "client"):
                                       "privacy policy's floor).")
 @click.option("--sample-seconds", type=click.FloatRange(0.1, 60), default=2.0,
               show_default=True, help="How often the daemons' RSS and open fds are read.")
+@click.option("--kill-clients", type=click.FloatRange(0.5, 3600), metavar="S",
+              help="Every S seconds kill a random client process (SIGKILL, as a device "
+                   "losing power) and start a fresh one with its certificate; the frame "
+                   "it had under way is counted apart (killed_clients), not as a failure.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path),
               help="Write soak.json, soak.png (curves over time; needs the bench "
                    "extra) and the daemons' logs (garbler.log, evaluator.log) into DIR.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tuple[str, ...],
-         min_invocations: int, sample_seconds: float, out: Path | None,
-         as_json: bool) -> None:
+         min_invocations: int, sample_seconds: float, kill_clients: float | None,
+         out: Path | None, as_json: bool) -> None:
     """A fleet of client processes localizing random scenes (mixed sizes and algorithms)
     against one daemon pair on loopback for --minutes; every frame's pose is checked bit
     for bit against the cleartext backend on the same scene. Reports invocations, failures
     by kind, latency percentiles (overall and per minute), and each daemon's RSS, open
-    fds, sessions and tables buffered ahead per minute (largest sample), whether both
-    daemons are idle once the clients left, and their logs' session outcomes. Verdict:
-    flat when, for each daemon, the last minute's RSS and fds are within 10 % of the
-    second minute's (null under 3 minutes).
-    Exit 1 on any wrong result or any failure other than busy (a server at its session
-    limit beyond the client's busy wait), else 0. Clients finish the frame under way at
+    fds, sessions and tables buffered ahead per minute (largest sample), both daemons'
+    footprint at rest before the fleet (idle_before) and once the clients left, and
+    their logs' session outcomes. Verdict: flat when, for each daemon, RSS and fds once
+    the clients left are within 10 % of idle_before (and, from 3 minutes, the last
+    minute's peaks within 10 % of the second's).
+    Exit 1 on any wrong result, any failure of any kind (busy included) or descriptors
+    not back within 10 % of idle_before, else 0. Clients finish the frame under way at
     the end; that wind-down is reported apart."""
     from .soak import run_soak
     from .soak_report import Plan
 
     plan = Plan(clients, minutes, points or SERVICE_POINTS, algorithms or ("lm", "gn"),
-                min_invocations, sample_seconds)
+                min_invocations, sample_seconds, kill_clients)
     if out is not None:
         try:
             from .soak_plot import plot_soak
@@ -89,7 +94,8 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
                    f"{body['invocations']} invocations (and "
                    f"{body['wind_down']['invocations']} in the {body['wind_down']['seconds']:.0f}"
                    f" s wind-down), {body['frames']} frames checked, {body['wrong']} wrong, "
-                   f"failures {body['failures'] or 'none'}")
+                   f"failures {body['failures'] or 'none'}, {body['killed_clients']} "
+                   f"clients killed")
         click.echo(f"latency p50 {lat['p50']} s  p95 {lat['p95']} s  p99 {lat['p99']} s")
         click.echo(f"invocations per minute {body['invocations_per_minute']}")
         for what in ("rss_mb", "fds", "sessions", "queued_mb"):
@@ -97,8 +103,10 @@ def soak(clients: int, minutes: float, points: tuple[int, ...], algorithms: tupl
                 click.echo(f"{what} {role}: {series}")
         click.echo(f"flat: {body['flat']}  ({body['flat_by_series']})")
         after = body["after_clients_left"]
-        click.echo(f"after the clients left: {'idle' if after['idle'] else 'NOT idle'} "
-                   f"within {after['seconds']} s  garbler {after['garbler']}  "
+        click.echo(f"at rest before the fleet: {body['idle_before']}")
+        click.echo(f"after the clients left: {'idle' if after['idle'] else 'NOT idle'}, "
+                   f"fds {'back' if after['fds_back'] else 'NOT back'} within "
+                   f"{after['seconds']} s  garbler {after['garbler']}  "
                    f"evaluator {after['evaluator']}")
         for role, log in body["daemon_logs"].items():
             click.echo(f"{role} log: sessions {log['sessions']}  warnings "

@@ -15,16 +15,17 @@ clients and the sampler saw into the report.
 
 from __future__ import annotations
 
-import contextlib
+import asyncio
 import dataclasses
+import math
 import multiprocessing as mp
 import os
-import queue
 import secrets
 import shutil
 import threading
 import time
 from dataclasses import dataclass
+from multiprocessing.connection import Connection, wait
 from pathlib import Path
 
 import numpy as np
@@ -34,11 +35,24 @@ from snail_client.embedded import embedded_services
 from snail_client.links import ServiceError
 from snail_client.progress import bar
 from snail_common.circuit import registry
+from snail_common.gc.stream import SCHEMES
 from snail_common.net.tls import add_client
 
-from .soak_report import EXAMPLES_KEPT, ROLES, Plan, Sample, Tally, daemon_log, summarize
+from .soak_report import (
+    EXAMPLES_KEPT,
+    ROLES,
+    Plan,
+    Sample,
+    Tally,
+    daemon_log,
+    summarize,
+    within,
+)
 
 IDLE_LIMIT_S = 40.0  # beyond the daemons' 30 s session timeout
+WARM_AT_ONCE = 4  # runs of each circuit at once in the warm-up
+SETTLED_S = 6.0  # fds unchanged this long: at rest (the garbler's pooled links last 5 s)
+SETTLE_LIMIT_S = 30.0
 COMPARED = ("rvec", "tvec", "cost", "iterations", "status")
 
 
@@ -72,9 +86,10 @@ def failure_kind(exc: BaseException) -> str:
     return f"client_{type(exc).__name__}"
 
 
-def client_main(job: ClientJob, out: mp.Queue) -> None:
+def client_main(job: ClientJob, out: Connection) -> None:
     """Localize random scenes until the soak's end; report each invocation, each frame
-    (with its scene seed, for the cleartext check) and each failure on ``out``."""
+    (with its scene seed, for the cleartext check) and each failure on ``out`` (this
+    client's own pipe: a client killed mid-message garbles nobody else's)."""
     from snail_common import families
 
     families.register_all()
@@ -92,7 +107,7 @@ def client_main(job: ClientJob, out: mp.Queue) -> None:
             def invoked() -> None:
                 last = backend.secure.last
                 latency = last.wall_s + last.timing.get("client_busy_wait_s", 0.0)
-                out.put(("inv", time.monotonic() - job.start, latency))
+                out.send(("inv", time.monotonic() - job.start, latency))
 
             backend.on_invocation = invoked
             while time.monotonic() < end:
@@ -104,16 +119,17 @@ def client_main(job: ClientJob, out: mp.Queue) -> None:
                 try:
                     result = localize(problem, options, backend)
                 except Exception as exc:  # every failure is counted, none ends the soak
-                    out.put(("fail", time.monotonic() - job.start, failure_kind(exc),
-                             f"client {job.index}: {exc}"))
+                    out.send(("fail", time.monotonic() - job.start, failure_kind(exc),
+                              f"client {job.index}: {exc}"))
                     continue
-                out.put(("frame", job.index, seed, n, algorithm,
-                         {k: result[k] for k in COMPARED}))
+                out.send(("frame", job.index, seed, n, algorithm,
+                          {k: result[k] for k in COMPARED}))
     except Exception as exc:  # e.g. the first connection failed
-        out.put(("fail", time.monotonic() - job.start, failure_kind(exc),
-                 f"client {job.index}: {exc}"))
+        out.send(("fail", time.monotonic() - job.start, failure_kind(exc),
+                  f"client {job.index}: {exc}"))
     finally:
-        out.put(("done", job.index))
+        out.send(("done", job.index))
+        out.close()
 
 
 def check_frame(seed: int, n: int, algorithm: str, garbled: dict,
@@ -170,36 +186,71 @@ def _sampler(pids: dict[str, int], monitor: SecureRunner, start: float, every: f
             return
 
 
-def _until_idle(monitor: SecureRunner, pids: dict[str, int], limit: float) -> dict:
+def _state(monitor: SecureRunner, pids: dict[str, int]) -> dict:
+    """Each daemon's sessions, tables buffered ahead, RSS and open fds now."""
+    state = {role: dict(zip(("sessions", "queued_mb"), _health(monitor, role)))
+             for role in ROLES}
+    for role, pid in pids.items():
+        state[role].update(zip(("rss_mb", "fds"), footprint(pid) or (None, None)))
+    return state
+
+
+def _idle_before(monitor: SecureRunner, pids: dict[str, int]) -> dict:
+    """The daemons' footprint at rest before the fleet: once the warm-up's sessions are
+    over and their pooled links have gone (their fds unchanged for a while)."""
+    t0, last, since = time.monotonic(), None, time.monotonic()
+    while time.monotonic() - t0 < SETTLE_LIMIT_S:
+        state = _state(monitor, pids)
+        fds = tuple(state[role]["fds"] for role in ROLES)
+        if fds != last:
+            last, since = fds, time.monotonic()
+        elif time.monotonic() - since >= SETTLED_S and all(
+                state[role]["sessions"] == 0 for role in ROLES):
+            break
+        time.sleep(0.5)
+    return {role: {k: state[role][k] for k in ("fds", "rss_mb")} for role in ROLES}
+
+
+def _until_idle(monitor: SecureRunner, pids: dict[str, int], before: dict,
+                limit: float) -> dict:
     """Once every client is gone: wait (up to ``limit`` seconds) until no session is under
-    way and nothing is buffered, and report each daemon's state then (with its RSS and
-    fds). A session still held after its clients left would be a leak."""
+    way, nothing is buffered and each daemon's fds are back within 10 % of ``before``,
+    and report each daemon's state then. A session or descriptor still held after its
+    clients left would be a leak."""
     t0 = time.monotonic()
     while True:
-        state = {role: dict(zip(("sessions", "queued_mb"), _health(monitor, role)))
-                 for role in ROLES}
+        state = _state(monitor, pids)
         idle = all(v["sessions"] == 0 and v["queued_mb"] == 0 for v in state.values())
-        if idle or time.monotonic() - t0 > limit:
-            for role, pid in pids.items():
-                state[role].update(zip(("rss_mb", "fds"), footprint(pid) or (None, None)))
-            return {"idle": idle, "seconds": round(time.monotonic() - t0, 1), **state}
+        back = all(state[role]["fds"] is not None and within(
+            state[role]["fds"], before[role]["fds"]) for role in ROLES)
+        if (idle and back) or time.monotonic() - t0 > limit:
+            return {"idle": idle, "fds_back": back,
+                    "seconds": round(time.monotonic() - t0, 1), **state}
         time.sleep(0.5)
 
 
 # ---- the run ----------------------------------------------------------------------------
 
 def _warm_up(garbler: str, evaluator: str, tls_dir: str, plan: Plan) -> None:
-    """One run of every circuit before the clock starts: the daemons load (or compile)
-    them then, which is start-up, not soak."""
+    """Runs of every circuit in each scheme, WARM_AT_ONCE at a time (lanes, every worker
+    thread), before the clock starts: the daemons load (or compile) the circuits and
+    build what a fleet needs then, which is start-up, not soak (``idle_before`` is
+    measured after it)."""
+    from snail_client.secure import AsyncSecureRunner
     from snail_common.loc.pipeline import Options
 
     ids = {Options(algorithm=a, min_invocations=plan.min_invocations).spec(n).registry_id
            for a in plan.algorithms for n in plan.points}
-    with SecureRunner(garbler, evaluator, tls_dir) as runner:
-        for circuit_id in sorted(ids):
-            bits = np.frombuffer(os.urandom(registry.interface(circuit_id).n_inputs),
-                                 np.uint8) & 1
-            runner.run(circuit_id, bits.astype(bool))
+
+    async def warm(scheme: str) -> None:
+        async with AsyncSecureRunner(garbler, evaluator, tls_dir, scheme=scheme) as runner:
+            for circuit_id in sorted(ids):
+                n_inputs = registry.interface(circuit_id).n_inputs
+                await asyncio.gather(*(runner.run(circuit_id, np.frombuffer(
+                    os.urandom(n_inputs), np.uint8) & 1 == 1) for _ in range(WARM_AT_ONCE)))
+
+    for scheme in SCHEMES:
+        asyncio.run(warm(scheme))
 
 
 def _absorb(message: tuple, tally: Tally, plan: Plan) -> None:
@@ -223,7 +274,6 @@ def run_soak(plan: Plan, quiet: bool = True, keep_logs: Path | None = None) -> d
     ``keep_logs``, the daemons' JSON logs are copied there (ROLE.log) for a post-mortem."""
     tally = Tally()
     ctx = mp.get_context("spawn")  # fresh interpreters: nothing shared with this one
-    out: mp.Queue = ctx.Queue()
     with embedded_services(log_level="info") as services:
         tls_dir = str(services.tls_dir)
         garbler, evaluator = services.garbler_addr, services.evaluator_addr
@@ -233,9 +283,10 @@ def run_soak(plan: Plan, quiet: bool = True, keep_logs: Path | None = None) -> d
         pids = {d.role: d.process.pid for d in (services.garbler, services.evaluator)}
         monitor = SecureRunner(garbler, evaluator, tls_dir, cert_name="soak-monitor")
         try:
-            elapsed = _fleet(plan, ctx, out, pids, monitor, tally, quiet,
+            before = _idle_before(monitor, pids)
+            elapsed = _fleet(plan, ctx, pids, monitor, tally, quiet,
                              ClientJob(0, garbler, evaluator, tls_dir, "", plan, 0.0))
-            after = _until_idle(monitor, pids, IDLE_LIMIT_S)
+            after = _until_idle(monitor, pids, before, IDLE_LIMIT_S)
         finally:
             monitor.close()
         logs = {d.role: daemon_log(d.log) for d in (services.garbler, services.evaluator)}
@@ -243,14 +294,65 @@ def run_soak(plan: Plan, quiet: bool = True, keep_logs: Path | None = None) -> d
             keep_logs.mkdir(parents=True, exist_ok=True)
             for d in (services.garbler, services.evaluator):
                 shutil.copyfile(d.log, keep_logs / f"{d.role}.log")
-    report = summarize(tally, plan, elapsed)
+    report = summarize(tally, plan, elapsed, before, after)
     report["soak"]["daemon_logs"] = logs
-    report["soak"]["after_clients_left"] = after
     return report
 
 
-def _fleet(plan: Plan, ctx, out: mp.Queue, pids: dict[str, int], monitor: SecureRunner,
-           tally: Tally, quiet: bool, template: ClientJob) -> float:
+class _Fleet:
+    """The client processes, each reporting on its own pipe; with ``plan.kill_every_s``,
+    one at random is killed (SIGKILL) that often and a fresh one starts with its
+    certificate, as a device that lost power and came back would."""
+
+    def __init__(self, plan: Plan, ctx, template: ClientJob, start: float) -> None:
+        self.plan, self.ctx, self.template, self.start = plan, ctx, template, start
+        self.running: dict[int, tuple[mp.Process, Connection]] = {}
+        self.certs: dict[int, str] = {}  # each client's certificate name
+        self.next_index = 0
+        self.killed = 0
+        self.next_kill = start + plan.kill_every_s if plan.kill_every_s else math.inf
+
+    def launch(self, cert_name: str) -> None:
+        reader, writer = self.ctx.Pipe(duplex=False)
+        job = dataclasses.replace(self.template, index=self.next_index, cert_name=cert_name,
+                                  start=self.start)
+        proc = self.ctx.Process(target=client_main, args=(job, writer), daemon=True)
+        proc.start()
+        writer.close()  # the child's copy is the one that writes
+        self.running[self.next_index] = (proc, reader)
+        self.certs[self.next_index] = cert_name
+        self.next_index += 1
+
+    def maybe_kill(self, now: float) -> None:
+        """Kill one client if its time has come (only while clients start new frames)."""
+        if now < self.next_kill or now >= self.start + self.plan.minutes * 60 \
+                or not self.running:
+            return
+        self.next_kill += self.plan.kill_every_s
+        index = secrets.choice(list(self.running))
+        proc, reader = self.running.pop(index)
+        proc.kill()
+        proc.join(10)
+        reader.close()
+        self.killed += 1
+        self.launch(self.certs[index])
+
+    def ended(self, index: int) -> None:
+        proc, reader = self.running.pop(index)
+        reader.close()
+        proc.join(10)
+
+    def stop(self) -> None:
+        for proc, reader in self.running.values():
+            if proc.is_alive():
+                proc.terminate()
+            proc.join(10)
+            reader.close()
+        self.running.clear()
+
+
+def _fleet(plan: Plan, ctx, pids: dict[str, int], monitor: SecureRunner, tally: Tally,
+           quiet: bool, template: ClientJob) -> float:
     """Start the sampler and the client processes, take their reports until all are
     done; returns the seconds from the start to the last client's end."""
     start = time.monotonic()
@@ -258,41 +360,47 @@ def _fleet(plan: Plan, ctx, out: mp.Queue, pids: dict[str, int], monitor: Secure
     sampler = threading.Thread(target=_sampler, args=(
         pids, monitor, start, plan.sample_s, tally, stop), daemon=True)
     sampler.start()
-    procs = [ctx.Process(target=client_main, daemon=True, args=(dataclasses.replace(
-        template, index=i, cert_name=f"soak-{i:03d}", start=start), out))
-        for i in range(plan.clients)]
+    fleet = _Fleet(plan, ctx, template, start)
     try:
-        for proc in procs:
-            proc.start()
-        _collect(procs, out, tally, plan, start, quiet)
+        for i in range(plan.clients):
+            fleet.launch(f"soak-{i:03d}")
+        _collect(fleet, tally, plan, start, quiet)
         return time.monotonic() - start
     finally:
+        tally.killed_clients = fleet.killed
         stop.set()
         sampler.join()
-        for proc in procs:
-            if proc.is_alive():
-                proc.terminate()
-            proc.join(10)
+        fleet.stop()
 
 
-def _collect(procs: list, out: mp.Queue, tally: Tally, plan: Plan, start: float,
-             quiet: bool) -> None:
+def _collect(fleet: _Fleet, tally: Tally, plan: Plan, start: float, quiet: bool) -> None:
     """Take the clients' messages (checking frames as they come) until every client said
-    done or died; a client process that dies without a word is a failure."""
-    done: set[int] = set()
+    done or is gone; a client that dies without a word (and was not killed by the soak)
+    is a failure."""
     seconds = round(plan.minutes * 60)
     with bar(seconds, "soak", quiet, "s") as progress:
-        while len(done) < len(procs):
-            with contextlib.suppress(queue.Empty):
-                message = out.get(timeout=0.5)
+        while fleet.running:
+            readers = {reader: index for index, (_, reader) in fleet.running.items()}
+            for reader in wait(list(readers), timeout=0.5):
+                index = readers[reader]
+                if index not in fleet.running:
+                    continue
+                try:
+                    message = reader.recv()
+                except (EOFError, OSError):  # gone without saying done
+                    proc = fleet.running[index][0]
+                    proc.join(10)
+                    tally.failures["client_died"] += 1
+                    tally.failure_examples.append(f"client {index} exited with "
+                                                  f"{proc.exitcode}")
+                    fleet.ended(index)
+                    continue
                 if message[0] == "done":
-                    done.add(message[1])
+                    fleet.ended(index)
                 else:
                     _absorb(message, tally, plan)
+            fleet.maybe_kill(time.monotonic())
             progress.n = min(seconds, round(time.monotonic() - start))
+            if fleet.killed:
+                progress.set_postfix_str(f"{fleet.killed} clients killed", refresh=False)
             progress.refresh()
-            for i, proc in enumerate(procs):
-                if i not in done and proc.exitcode is not None and out.empty():
-                    done.add(i)
-                    tally.failures["client_died"] += 1
-                    tally.failure_examples.append(f"client {i} exited with {proc.exitcode}")

@@ -3,9 +3,12 @@ clients and the sampler saw, and the arithmetic that turns that into the report.
 processes or daemons, so it is unit-tested on synthetic samples.
 
 The report gives per minute the largest sample, the invocations and their latency
-percentiles, and a verdict: ``flat`` when for every role the last minute is within 10 %
-of the second (the first minute holds start-up and warm caches), null when the run has
-fewer than three minutes to compare.
+percentiles, and a verdict: ``flat`` when, for every daemon, RSS and open fds once the
+clients have left are within 10 % of what they were at rest before the fleet
+(``idle_before``), and, in a run of three minutes or more, the last minute's peaks are
+within 10 % of the second's (the first holds start-up and warm caches). ``ok`` asks for
+no wrong result, no failure of any kind (busy included: a live run must never find the
+servers full of other clients' reservations) and the descriptors back.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from snail_common.net.errors import BUSY
 ROLES = ("garbler", "evaluator")
 ALGORITHMS = ("lm", "gn")
 EXPLAINED = (BUSY,)  # a server at its session limit, still busy after the client's wait
-FLAT_TOLERANCE = 0.10  # last minute within this fraction of the second
+FLAT_TOLERANCE = 0.10  # last minute within this fraction of the second; after vs before
 SAMPLE_S = 2.0
 EXAMPLES_KEPT = 5  # wrong results and failure messages quoted in the report
 
@@ -38,6 +41,7 @@ class Plan:
     algorithms: tuple[str, ...] = ALGORITHMS
     min_invocations: int = 20
     sample_s: float = SAMPLE_S
+    kill_every_s: float | None = None  # a random client is killed (SIGKILL) this often
 
     @property
     def buckets(self) -> int:
@@ -69,6 +73,7 @@ class Tally:
     failures: Counter = field(default_factory=Counter)
     failure_examples: list[str] = field(default_factory=list)
     samples: list[Sample] = field(default_factory=list)
+    killed_clients: int = 0  # by the soak (--kill-clients): their frames are not failures
 
 
 # ---- arithmetic over samples ------------------------------------------------------------
@@ -102,6 +107,11 @@ def per_minute_max(timed: list[tuple[float, float]], buckets: int) -> list[float
     return [max(values) if values else None for values in bucket(timed, buckets)]
 
 
+def within(value: float, base: float, tolerance: float = FLAT_TOLERANCE) -> bool:
+    """Whether ``value`` is within ``tolerance`` of ``base`` (a count or a size)."""
+    return abs(value - base) <= tolerance * base
+
+
 def flat(series: list[float | None], tolerance: float = FLAT_TOLERANCE) -> bool | None:
     """True when the last minute is within ``tolerance`` of the second; None when there
     is no third minute (the second would be compared with itself) or a sample is missing."""
@@ -132,27 +142,32 @@ def daemon_log(path: Path) -> dict:
     return {"sessions": dict(sessions), "warnings": dict(troubles)}
 
 
-def summarize(tally: Tally, plan: Plan, elapsed: float) -> dict:
-    """The report: FORMATS' fields (invocations, wrong, failures, latency_s, rss_mb, fds)
-    and per-minute series, the flatness verdict and what is needed to reproduce a
-    wrong frame. Clients finish the frame under way at the end (so it can be checked):
-    that wind-down, with ever fewer clients, is left out of the invocation counts,
-    latencies and per-minute values and reported apart; its frames are still checked and
-    its failures counted, and the raw samples cover it."""
+def summarize(tally: Tally, plan: Plan, elapsed: float, before: dict, after: dict) -> dict:
+    """The report: FORMATS' fields (invocations, wrong, failures, latency_s, rss_mb, fds,
+    idle_before, killed_clients) and per-minute series, the flatness verdict (``before``:
+    each daemon's fds and RSS at rest before the fleet, ``after``: its state once the
+    clients left) and what is needed to reproduce a wrong frame. Clients finish the
+    frame under way at the end (so it can be checked): that wind-down, with ever fewer
+    clients, is left out of the invocation counts, latencies and per-minute values and
+    reported apart; its frames are still checked and its failures counted, and the raw
+    samples cover it."""
     buckets, window = plan.buckets, plan.minutes * 60
     inside = [(t, latency) for t, latency in tally.invocations if t < window]
     per_minute = bucket(inside, buckets)
-    within = [sample for sample in tally.samples if sample.t < window]
+    during = [sample for sample in tally.samples if sample.t < window]
 
     def series(what: str) -> dict[str, list]:
-        return {role: per_minute_max([(x.t, getattr(x, what)) for x in within
+        return {role: per_minute_max([(x.t, getattr(x, what)) for x in during
                                       if x.role == role and getattr(x, what) is not None],
                                      buckets) for role in ROLES}
 
     rss, fds = series("rss_mb"), series("fds")
     verdicts = {f"{what}/{role}": flat(series[role])
                 for what, series in (("rss_mb", rss), ("fds", fds)) for role in ROLES}
-    overall = None if None in verdicts.values() else all(verdicts.values())
+    verdicts.update({f"after/{what}/{role}": after[role][what] is not None
+                     and within(after[role][what], before[role][what])
+                     for what in ("rss_mb", "fds") for role in ROLES})
+    overall = all(v for v in verdicts.values() if v is not None)
     unexplained = sum(n for kind, n in tally.failures.items() if kind not in EXPLAINED)
     minute_latency = [percentiles(values) for values in per_minute]
     return {"soak": {
@@ -163,18 +178,20 @@ def summarize(tally: Tally, plan: Plan, elapsed: float) -> dict:
         "wind_down": {"seconds": round(max(elapsed - window, 0.0), 1),
                       "invocations": len(tally.invocations) - len(inside)},
         "wrong": len(tally.wrong), "failures": dict(tally.failures),
-        "unexplained_failures": unexplained,
+        "unexplained_failures": unexplained, "killed_clients": tally.killed_clients,
+        "kill_every_s": plan.kill_every_s,
         "latency_s": percentiles([latency for _, latency in inside]),
         "rss_mb": rss, "fds": fds,
         "invocations_per_minute": [len(values) for values in per_minute],
         "latency_per_minute_s": {p: [row[p] for row in minute_latency]
                                  for p in ("p50", "p95", "p99")},
-        "flat": overall, "flat_by_series": verdicts,
+        "flat": overall, "flat_by_series": verdicts, "idle_before": before,
+        "after_clients_left": after,
         "sessions": series("sessions"), "queued_mb": series("queued_mb"),
         "samples": {role: [[round(x.t, 1), x.rss_mb, x.fds, x.sessions, x.queued_mb]
                            for x in tally.samples if x.role == role]
                     for role in ROLES},  # [t_s, rss_mb, fds, sessions, queued_mb]
         "wrong_examples": tally.wrong[:EXAMPLES_KEPT],
         "failure_examples": tally.failure_examples[:EXAMPLES_KEPT],
-        "ok": not tally.wrong and unexplained == 0,
+        "ok": not tally.wrong and not tally.failures and bool(after.get("fds_back")),
     }}

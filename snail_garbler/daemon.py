@@ -120,7 +120,8 @@ class GarblerDaemon(Daemon):
         # evaluator awaits up to its --idle-timeout
         self.links = TableLinks(Replicas(evaluators, "--evaluator", "evaluator"), client_ctx,
                                 options.handshake_timeout,
-                                options.session_timeout + options.idle_timeout, logger)
+                                options.session_timeout + options.idle_timeout, logger,
+                                closed=self.connection_ended)
         self.table_streams: set[Connection] = set()  # sessions' tables under way
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
         self.owners = OwnerInputs(client_ctx, options.handshake_timeout, map_owners)

@@ -25,6 +25,8 @@ import asyncio
 import contextlib
 import enum
 import logging
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from snail_common.net import messages
@@ -34,6 +36,7 @@ from snail_common.net.logs import event
 from snail_common.net.replicas import Address, Replicas
 
 MAX_IDLE = 8  # pooled idle connections per evaluator replica
+POOL_IDLE_S = 5.0  # a pooled connection unused this long is closed (clients have left)
 
 
 class State(enum.Enum):
@@ -84,13 +87,16 @@ class TableLinks:
     """The pool of connections to the evaluator replicas this garbler may dial."""
 
     def __init__(self, evaluators: Replicas, ctx, handshake_timeout: float,
-                 verdict_timeout: float, log: logging.Logger) -> None:
+                 verdict_timeout: float, log: logging.Logger,
+                 closed: Callable[[], None] = lambda: None) -> None:
         self.evaluators = evaluators
         self.ctx = ctx
         self.handshake_timeout = handshake_timeout
         self.verdict_timeout = verdict_timeout  # a held reservation's verdict comes late
         self.log = log
+        self.closed = closed  # told when a link closes (the daemon sweeps its memory)
         self.idle: dict[Address, list[Connection]] = {}
+        self._pooled: dict[Connection, float] = {}  # when each idle one was pooled
         self._settling: set[asyncio.Task] = set()
         self.closing = False
 
@@ -147,6 +153,7 @@ class TableLinks:
         pool = self.idle.get(addr, [])
         while pool:
             conn = pool.pop()
+            self._pooled.pop(conn, None)
             if conn.idle:
                 return conn
             await conn.close()  # something arrived while idle (a bye): not reusable
@@ -157,8 +164,22 @@ class TableLinks:
         pool = self.idle.setdefault(addr, [])
         if conn.idle and len(pool) < MAX_IDLE and not self.closing:
             pool.append(conn)
+            self._pooled[conn] = time.monotonic()
+            asyncio.get_running_loop().call_later(POOL_IDLE_S, self._expire, addr, conn)
         else:
             conn.abort()
+
+    def _expire(self, addr: Address, conn: Connection) -> None:
+        """Close ``conn`` if it is still in the pool, unused since it was put there (one
+        taken and given back meanwhile has a later timer of its own)."""
+        pool = self.idle.get(addr, [])
+        since = self._pooled.get(conn)
+        if conn in pool and since is not None \
+                and time.monotonic() - since >= POOL_IDLE_S * 0.99:
+            pool.remove(conn)
+            del self._pooled[conn]
+            conn.abort()
+            self.closed()
 
     async def close(self) -> None:
         """Shutdown: verdicts still due are no longer awaited; pooled links say bye."""
@@ -168,6 +189,7 @@ class TableLinks:
         await asyncio.gather(*self._settling, return_exceptions=True)
         idle = [conn for pool in self.idle.values() for conn in pool]
         self.idle.clear()
+        self._pooled.clear()
         with contextlib.suppress(Exception):
             await asyncio.gather(*(c.close(messages.make("bye")) for c in idle),
                                  return_exceptions=True)

@@ -56,11 +56,18 @@ def test_short_soak_reports_checked_frames_and_the_daemons_footprint(tmp_path):
         assert all(len(series) == 1 and series[0] > 0 for series in body[what].values())
     # each daemon holds at least its listening socket and one connection per client link
     assert all(series[0] >= 3 for series in body["fds"].values())
-    assert body["flat"] is None  # one minute: nothing to compare
+    # one minute: the peaks are not compared, only the footprint after with that before
+    assert {k: v for k, v in body["flat_by_series"].items() if not k.startswith("after/")} \
+        == dict.fromkeys(("rss_mb/garbler", "rss_mb/evaluator", "fds/garbler",
+                          "fds/evaluator"))
+    before = body["idle_before"]
+    assert all(before[role]["fds"] >= 3 and before[role]["rss_mb"] > 10
+               for role in ("garbler", "evaluator"))
+    assert body["killed_clients"] == 0
     assert len(body["samples"]["garbler"]) >= 10  # about one a second for ~18 s
     assert max(row[3] for row in body["samples"]["evaluator"]) >= 1  # sessions under way
     after = body["after_clients_left"]  # every session freed once the clients left
-    assert after["idle"] and all(
+    assert after["idle"] and after["fds_back"] and all(
         after[role]["sessions"] == 0 and after[role]["queued_mb"] == 0.0
         and after[role]["rss_mb"] > 10 and after[role]["fds"] > 3
         for role in ("garbler", "evaluator"))
@@ -121,8 +128,17 @@ def _tally(failures: Counter, wrong: int = 0) -> Tally:
                  wrong=[{"seed": 1}] * wrong, failures=failures, samples=samples)
 
 
+BEFORE = {"garbler": {"fds": 40, "rss_mb": 200.0}, "evaluator": {"fds": 40, "rss_mb": 300.0}}
+
+
+def _after(fds: int = 41, garbler_rss: float = 205.0) -> dict:
+    return {"idle": True, "fds_back": fds <= 44, "seconds": 1.0,
+            "garbler": {"sessions": 0, "queued_mb": 0.0, "rss_mb": garbler_rss, "fds": fds},
+            "evaluator": {"sessions": 0, "queued_mb": 0.0, "rss_mb": 300.0, "fds": 40}}
+
+
 def test_summary_shape_verdicts_and_what_counts_against_the_run():
-    body = summarize(_tally(Counter()), Plan(16, 4), 245.0)["soak"]
+    body = summarize(_tally(Counter()), Plan(16, 4), 245.0, BEFORE, _after())["soak"]
     assert body["invocations"] == 100 and body["invocations_per_minute"] == [40, 40, 20, 0]
     assert body["wind_down"] == {"seconds": 5.0, "invocations": 7}  # not in the minutes
     assert body["rss_mb"]["garbler"] == [200.0, 200.0, 200.0, 230.0]
@@ -130,17 +146,35 @@ def test_summary_shape_verdicts_and_what_counts_against_the_run():
     assert body["sessions"] == {"garbler": [3, 3, 3, 3], "evaluator": [None, 5, 5, 5]}
     assert body["queued_mb"]["evaluator"] == [0.0, 12.5, 25.0, 37.5]
     assert body["samples"]["evaluator"][40] == [80, 300.0, 40, 5, 12.5]
-    assert body["flat_by_series"] == {"rss_mb/garbler": False, "rss_mb/evaluator": True,
-                                      "fds/garbler": True, "fds/evaluator": True}
+    assert body["flat_by_series"] == {
+        "rss_mb/garbler": False, "rss_mb/evaluator": True, "fds/garbler": True,
+        "fds/evaluator": True, "after/rss_mb/garbler": True, "after/rss_mb/evaluator": True,
+        "after/fds/garbler": True, "after/fds/evaluator": True}
+    assert body["idle_before"] == BEFORE and body["after_clients_left"] == _after()
     assert body["flat"] is False and body["ok"]  # a leak is reported; exit by results only
     assert body["latency_per_minute_s"]["p50"][3] is None
     assert body["latency_s"]["p50"] == pytest.approx(0.995)
-    busy = summarize(_tally(Counter(busy=3)), Plan(16, 4), 240.0)["soak"]
+    # busy counts against the run like any failure: a live run must never meet it
+    busy = summarize(_tally(Counter(busy=3)), Plan(16, 4), 240.0, BEFORE, _after())["soak"]
     assert busy["failures"] == {"busy": 3} and busy["unexplained_failures"] == 0
-    assert busy["ok"]
-    lost = summarize(_tally(Counter(busy=1, connection=1)), Plan(16, 4), 240.0)["soak"]
+    assert not busy["ok"]
+    lost = summarize(_tally(Counter(connection=1)), Plan(16, 4), 240.0, BEFORE,
+                     _after())["soak"]
     assert lost["unexplained_failures"] == 1 and not lost["ok"]
-    assert not summarize(_tally(Counter(), wrong=1), Plan(16, 4), 240.0)["soak"]["ok"]
+    assert not summarize(_tally(Counter(), wrong=1), Plan(16, 4), 240.0, BEFORE,
+                         _after())["soak"]["ok"]
+
+
+def test_descriptors_or_memory_not_back_after_the_clients_left_are_not_flat():
+    short = Plan(16, 2)  # under three minutes: only after against before counts
+    body = summarize(_tally(Counter()), short, 120.0, BEFORE, _after())["soak"]
+    assert body["flat"] is True and body["ok"]
+    leaked = summarize(_tally(Counter()), short, 120.0, BEFORE, _after(fds=45))["soak"]
+    assert leaked["flat_by_series"]["after/fds/garbler"] is False
+    assert leaked["flat"] is False and not leaked["ok"]  # descriptors not back: a failure
+    grown = summarize(_tally(Counter()), short, 120.0, BEFORE,
+                      _after(garbler_rss=221.0))["soak"]
+    assert grown["flat"] is False and grown["ok"]  # memory is reported, not an exit
 
 
 def test_failures_count_under_the_servers_code_or_what_the_client_saw():

@@ -40,9 +40,15 @@ class HeapTrimmer:
 
     def session_ended(self) -> bool:
         """A session ended: trim if the last trim is ``every_s`` old; whether it did."""
-        now = time.monotonic()
-        if self._trim is None or now - self._last < self._every_s:
+        if time.monotonic() - self._last < self._every_s:
             return False
-        self._last = now
+        return self.trim()
+
+    def trim(self) -> bool:
+        """Trim now (the daemon has gone idle: the last session's pages too); whether
+        there is a trim to call."""
+        if self._trim is None:
+            return False
+        self._last = time.monotonic()
         self._trim(0)
         return True

@@ -85,6 +85,9 @@ class Listener:
     async def shutdown_extra(self) -> None:
         """Close what the subclass owns (e.g. pooled outgoing connections)."""
 
+    def connection_ended(self) -> None:
+        """A served or dialled connection has closed (the daemon may give memory back)."""
+
     def under_way(self) -> bool:
         """Whether work a peer still counts on is under way (draining waits for it)."""
         return bool(self.counters["active"])
@@ -141,6 +144,7 @@ class Listener:
         finally:
             self.connections.discard(conn)
             await conn.close()
+            self.connection_ended()
             event(self.log, "connection_closed", peer=conn.peer_name, address=address,
                   peer_role=conn.peer_role, bytes_in=conn.bytes_in, bytes_out=conn.bytes_out)
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import ssl
 import time
@@ -68,6 +69,7 @@ class Daemon(Listener):
                            options.max_ahead_per_peer)
         self.heap = HeapTrimmer()
         self.engine: dict[str, str] = {}  # which garbling engine serves (use_engine)
+        self._sweep: asyncio.TimerHandle | None = None  # connection_ended's pending sweep
 
     async def run(self, host: str, port: int, ctx: ssl.SSLContext) -> None:
         """Serve until stopped (``Listener.run``), then let the workers go."""
@@ -186,7 +188,7 @@ class Daemon(Listener):
             self.slots.release(slot)
             self._count_slots()
         if not self.counters["active"]:  # still idle a moment later: give the frames back
-            asyncio.get_running_loop().call_later(BODIES_IDLE_S, self._release_bodies)
+            self.connection_ended()
         self.heap.session_ended()
         self.log_session(peer=slot.peer if slot is not None else "", **record)
 
@@ -194,11 +196,26 @@ class Daemon(Listener):
         self.counters["active"] = self.slots.active
         self.counters["reserved"] = self.slots.reservations
 
+    def connection_ended(self) -> None:
+        """A session or a connection ended: once the daemon has been idle for
+        BODIES_IDLE_S, give its memory back (``_release_bodies``). A connection that
+        closes after the last session (a client leaving, a pooled link expiring) frees
+        buffers of its own, so each end asks again (at most one sweep is pending)."""
+        if self._sweep is None or self._sweep.cancelled():
+            self._sweep = asyncio.get_running_loop().call_later(BODIES_IDLE_S,
+                                                                self._release_bodies)
+
     def _release_bodies(self) -> None:
-        """An idle daemon keeps no recycled table frames: its memory follows its load (the
-        next trim returns them), while back-to-back invocations reuse them."""
+        """An idle daemon keeps no recycled table frames, and hands its freed heap back:
+        its memory follows its load, while back-to-back invocations reuse the frames.
+        Garbage in reference cycles (a closed connection and its transport, a session
+        and its tasks, with their buffers) is collected first: an idle daemon allocates
+        nothing, so the collector would otherwise not run until the next client."""
+        self._sweep = None
         if not self.counters["active"]:
             self.bodies.clear()
+            gc.collect()
+            self.heap.trim()
 
     def log_session(self, *, peer: str, sid: bytes, circuit: str, n_and: int,
                     bytes_in: int, bytes_out: int, seconds: float, outcome: str,
