@@ -174,7 +174,8 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "stats": ({"sid": sid, "traffic": number_map(int), "timing": number_map(float)}, {}),
     "health_request": ({}, {}),
     "health": ({"role": one_of(ROLES), "sessions": number_map(int), "uptime_s": seconds},
-               {"engine": one_of(ENGINES), "engine_reason": text(), "engine_threads": count}),
+               {"engine": one_of(ENGINES), "engine_reason": text(), "engine_threads": count,
+                "failpoints": text_list}),
     "error": ({"code": text(64), "message": text()}, {"sid": sid}),
     "bye": ({}, {}),
     # the map-owner setting

@@ -22,6 +22,7 @@ from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
+from snail_common import failpoints
 from snail_common.circuit import registry
 from snail_common.circuit.ir import Circuit
 from snail_common.circuit.plan import plan_for
@@ -97,9 +98,10 @@ class Daemon(Listener):
         return self.engine
 
     def health(self) -> dict[str, Any]:
+        armed = failpoints.armed()  # a daemon that misbehaves on purpose says so
         return messages.make("health", role=self.role, sessions=self.metrics.health(),
                              uptime_s=round(time.monotonic() - self.started, 3),
-                             **self.engine)
+                             **self.engine, **({"failpoints": armed} if armed else {}))
 
     def prometheus(self) -> str:
         return self.metrics.prometheus()
