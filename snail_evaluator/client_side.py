@@ -75,6 +75,7 @@ class ClientSide:
                 s.peer = conn.peer_name
                 s.bytes_in += size
             s.client = conn
+            s.signer = msg.get("signer")  # the garbler key its tables must verify under
         except ProtocolError as exc:
             conn.post(messages.error(exc.code, exc.message, sid))
             if exc.code in (BUSY, DRAINING):  # refused for want of a slot: one line

@@ -27,11 +27,12 @@ from snail_common.net.errors import (
     ProtocolError,
 )
 
+from .attest import Attested
 from .lanes import EvalLane, Solo
 from .session import Session
 
 
-class GarblerSide:
+class GarblerSide(Attested):
     """The evaluator's garbler connections."""
 
     async def _serve_garbler(self, conn: Connection) -> None:
@@ -65,12 +66,13 @@ class GarblerSide:
             try:
                 ev, received, ahead, t_labels, waited = await self._evaluate(conn, s,
                                                                              schedule)
+                await self._attested(conn, s)  # the garbler's signed digest (attest.py)
             finally:
                 self.counters["streaming"] -= 1
             received += size
             t_done = time.monotonic()
             s.timeline["eval_end"] = time.time()
-            outputs = ev.output_labels()
+            outputs = self._outputs(ev)
         except ProtocolError as exc:
             self._fail(s, ProtocolError(exc.code, f"the garbler's table stream: {exc.message}"))
             raise ProtocolError(exc.code, exc.message) from None  # closes the garbler conn
@@ -94,7 +96,8 @@ class GarblerSide:
                                            "garbled_ahead": ahead},
                 timing={"ahead_s": t_labels - t0, "wait_s": waited,
                         "evaluate_s": t_done - t_labels, "lanes": float(ev.lanes),
-                        **{f"t_{k}": v for k, v in s.timeline.items()}}))
+                        **{f"t_{k}": v for k, v in s.timeline.items()}, **s.check_s},
+                **self._forwarded(s)))
         except ConnectionClosed:
             pass  # the client left after its labels arrived: nobody to tell
         self._complete(s)
@@ -127,8 +130,10 @@ class GarblerSide:
         try:
             while ev is None or not ev.stream_complete:
                 if ev is None and s.ready.done():  # raises the session's failure, if any
-                    ev = (await self.lanes.lane(s.circuit, schedule, s.ready.result())
-                          if laned else Solo(schedule, s.ready.result(), scheme_id(s.scheme)))
+                    ev = self._digested(s, await self.lanes.lane(s.circuit, schedule,
+                                                                 s.ready.result())
+                                        if laned else Solo(schedule, s.ready.result(),
+                                                           scheme_id(s.scheme)))
                     if s.watchdog:
                         s.watchdog.cancel()
                     t_labels = time.monotonic()
@@ -160,6 +165,8 @@ class GarblerSide:
                     raise ProtocolError(s.failure.code, s.failure.message)
                 if msg["t"] == "error":
                     raise ProtocolError(msg["code"], f"the garbler reported: {msg['message']}")
+                if self._tables_end(s, msg, ev is not None):  # its signed digest: attest.py
+                    continue
                 if msg["t"] != "tables" or msg["sid"] != s.sid:
                     raise ProtocolError(UNEXPECTED, f"expected tables of this session, the "
                                                     f"garbler sent {msg['t']}")
@@ -186,7 +193,7 @@ class GarblerSide:
             self.ahead_buffered -= s.queued
             s.queued = 0
             if recv is not None:
-                recv.cancel()
+                self._read_ahead(s, recv)  # it may hold the signed digest (attest.py)
         return ev, received, ahead, t_labels, waited
 
     def _queue_full(self, s: Session) -> bool:

@@ -63,6 +63,7 @@ from snail_common.net.service import Daemon, Options
 from snail_common.net.tcpinfo import link_advice
 from snail_common.net.tcpinfo import read as tcp_info
 
+from .attest import Attesting
 from .lanes import LaneBatcher, LaneView
 from .owner import OwnerInputs
 
@@ -100,7 +101,7 @@ def frame_plan(schedule: Schedule, scheme: int = SCHEME_HALF_GATES,
     return block, max(size, 8 * table_words(scheme, block))
 
 
-class GarblerDaemon(Daemon):
+class GarblerDaemon(Attesting, Daemon):
     role = "garbler"
     allowed = ("client",)
     gone_event = "client_gone"
@@ -266,13 +267,13 @@ class GarblerDaemon(Daemon):
                timing: dict[str, float], owner: dict[str, int]) -> int:
         """Queue the output zero-labels and stats for the client; the bytes queued (0 if
         it is gone)."""
+        zero, signed = self.attest.reply(garbler, timing, client.peer_name)  # attest.py
         try:
-            return (write_labels(client, "output_zero_labels", sid,
-                                 garbler.output_zero_labels)
+            return (write_labels(client, "output_zero_labels", sid, zero)
                     + client.write(messages.make("stats", sid=sid,
                                                  traffic={"garbler_to_evaluator": sent,
                                                           **owner},
-                                                 timing=timing)))
+                                                 timing=timing, **signed)))
         except ConnectionClosed:
             event(self.log, "client_gone", peer=client.peer_name, sid=sid,
                   reason="before its result was sent")
@@ -295,7 +296,7 @@ class GarblerDaemon(Daemon):
         sent = evaluator.write(messages.make("session_start", sid=sid, circuit=req["circuit"],
                                              hash=req["hash"],
                                              scheme=req.get("scheme", DEFAULT_SCHEME)))
-        frames = garbler.frames()
+        frames = self.attest.frames(garbler, req)  # hashed as sent (attest.py)
         clock = {"cpu_s": 0.0}
         pending = self.submit(_timed_next, frames, clock)
         answered = False
@@ -317,6 +318,7 @@ class GarblerDaemon(Daemon):
                 if not evaluator.idle:  # the evaluator spoke: done, or it gave up
                     await self._verdict(evaluator, sid, timeout)
                     answered = True
+            sent += evaluator.write(self.attest.end(garbler))  # the signed digest
             timeline["garbled"] = clock.get("garbled", time.time())
         finally:
             if not pending.done():  # let the garbling thread finish with the generator
