@@ -50,11 +50,13 @@ from .links import Link, ServiceError
 from .replicas import ReplicaSet
 from .sessions import Prepared
 
-# The default share of runs audited: at n = 6 an audit costs the client about what the
-# garbler spends on the run (docs/performance.md); 1/16 keeps the client's average CPU per
-# run within about a tenth above an unaudited one while a garbler cheating on every run of
-# a padded localization (20 runs) is caught with probability 1 - (15/16)^20 = 0.72.
-DEFAULT_AUDIT_RATE = 1 / 16
+# The default share of runs audited (snail-bench audits, native engine): an audit costs
+# the client 3.7 ms of CPU at n = 6 (an unaudited run 1.4 ms; the two servers spend about
+# 20 ms on the run) and 0.1 s at n = 256 (a run takes 0.4-0.5 s). At 1/8 the client's
+# CPU per run grows by 0.46 ms (n = 6) and 12 ms (n = 256, under 3 % of a run's time),
+# and a garbler cheating on every run of a padded localization (20 runs) is caught with
+# probability 1 - (7/8)^20 = 0.93 in that localization.
+DEFAULT_AUDIT_RATE = 1 / 8
 _DRAW = 1 << 53
 INTEGRITY = "integrity"
 
@@ -70,6 +72,7 @@ class IntegrityFailure(ServiceError):
         super().__init__(f"integrity check failed on run {run}, the {party} is to blame: "
                          f"{detail}{where}", INTEGRITY, link, retry)
         self.party, self.run, self.detail, self.evidence = party, run, detail, evidence
+        self.audits: dict[str, int] = {}  # the frame's audit counts (localize.py sets them)
 
     def record(self) -> dict[str, Any]:
         """The ``error`` field of the failed result (docs/formats.md)."""
