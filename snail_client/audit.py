@@ -105,7 +105,7 @@ class Audits:
     runs: int = 0
     audited: int = 0
     failed: int = 0
-    refused: dict[str, str] = field(default_factory=dict)  # certificate SHA-256 -> party
+    refused: dict[str, str] = field(default_factory=dict)  # _server(link) -> party
     audit_s: float = 0.0  # wall seconds of the last run's audit (0: not audited)
 
     def __post_init__(self) -> None:
@@ -121,9 +121,10 @@ class Audits:
         """Refuse (``cancel``) a session at a server caught cheating earlier:
         ServiceError, which may run again where the role has other ``replicas``."""
         for role, link in (("garbler", session.garbler), ("evaluator", session.evaluator)):
-            party = self.refused.get(_fingerprint(link))
+            party = self.refused.get(_server(link))
             if party is not None:
                 cancel(session)
+                replicas[role].shun_link(link, math.inf)
                 raise ServiceError(f"{link.where} failed an integrity check "
                                    f"earlier ({party} blamed): refused for the rest of this "
                                    f"session", INTEGRITY, link, retry=replicas[role].several())
@@ -133,15 +134,14 @@ class Audits:
                     replicas: Mapping[str, ReplicaSet]) -> np.ndarray:
         """The decoded outputs of a run, once its checks hold; IntegrityFailure else
         (to be tried again where the role at fault has other ``replicas``)."""
-        several = {role: r.several() for role, r in replicas.items()}
-        screened = self._screen(session, zero, active, g_stats, e_stats, several)
+        screened = self._screen(session, zero, active, g_stats, e_stats, replicas)
         if not screened.audit:
             return screened.outputs
         loop = asyncio.get_running_loop()
         t0 = loop.time()
         recomputed = await loop.run_in_executor(None, _regarble, screened)
         self.audit_s = loop.time() - t0
-        return self._settle(screened, recomputed, several)
+        return self._settle(screened, recomputed, replicas)
 
     def draw(self) -> bool:
         """Whether to audit the next run: True with probability ``rate`` (OS CSPRNG)."""
@@ -149,7 +149,7 @@ class Audits:
 
     def _screen(self, session: Prepared, zero: np.ndarray, active: np.ndarray,
                 g_stats: dict[str, Any], e_stats: dict[str, Any],
-                several: dict[str, bool]) -> _Screened:
+                replicas: Mapping[str, ReplicaSet]) -> _Screened:
         run, audit = self.runs, self.draw()  # drawn before anything of the run is seen
         self.runs += 1
         self.audit_s = 0.0
@@ -160,10 +160,10 @@ class Audits:
         fields = ("tables_digest", "block_gates", "tables_signature")
         if not all(f in e_stats for f in fields):
             self._fail("evaluator", run, session, "the evaluator forwarded no signed digest "
-                                                  "of the tables", several)
+                                                  "of the tables", replicas)
         if not all(f in g_stats for f in (*fields[:2], "outputs_signature")):
             self._fail("garbler", run, session, "the garbler signed no digest of its "
-                                                "tables", several)
+                                                "tables", replicas)
         base = (session.sid, session.circuit_id, session.iface.content_hash,
                 scheme_id(session.scheme))
         tables = Statement(*base, e_stats["block_gates"], e_stats["tables_digest"])
@@ -175,14 +175,14 @@ class Audits:
                                  _certificate(session.garbler))
         if not tables.verify(key, signed.tables_signature):
             self._fail("evaluator", run, session, "the signed digest the evaluator forwarded "
-                                                  "is not the garbler's", several)
+                                                  "is not the garbler's", replicas)
         if not outputs.verify(key, signed.outputs_signature):
             self._fail("garbler", run, session, "the garbler's signature on its output "
-                                                "zero-labels does not verify", several)
+                                                "zero-labels does not verify", replicas)
         screened = _Screened(run, session, zero, signed, audit)
         if (tables.block_gates, tables.tables) != (outputs.block_gates, outputs.tables):
             self._fail("garbler", run, session, "the garbler signed two different table "
-                                                "streams for this run", several,
+                                                "streams for this run", replicas,
                        self._evidence(screened, None, "two streams signed for one run"))
         try:
             screened.outputs = decode_output_labels(session.delta, zero, active)
@@ -193,7 +193,7 @@ class Audits:
         return screened
 
     def _settle(self, s: _Screened, recomputed: tuple[bytes, np.ndarray],
-                several: dict[str, bool]) -> np.ndarray:
+                replicas: Mapping[str, ReplicaSet]) -> np.ndarray:
         """Compare the audit's run with what was signed and returned."""
         digest, zero = recomputed
         lie = ("the tables the garbler signed are not this circuit's for the run's seed, "
@@ -201,13 +201,13 @@ class Audits:
                "the output zero-labels the garbler sent are not this run's"
                if not np.array_equal(zero, s.zero) else "")
         if lie:
-            self._fail("garbler", s.run, s.session, lie, several,
+            self._fail("garbler", s.run, s.session, lie, replicas,
                        self._evidence(s, recomputed, lie))
         if s.invalid:
             party = "evaluator-or-ot" if s.session.owner_bits else "evaluator"
             self._fail(party, s.run, s.session, f"the garbler's tables and zero-labels are "
                                                 f"right, the output labels returned are not "
-                                                f"({s.invalid})", several)
+                                                f"({s.invalid})", replicas)
         return s.outputs
 
     def _evidence(self, s: _Screened, recomputed: tuple[bytes, np.ndarray] | None,
@@ -221,17 +221,18 @@ class Audits:
                                "evaluator": _fingerprint(session.evaluator)}, detail)
 
     def _fail(self, party: str, run: int, session: Prepared, detail: str,
-              several: dict[str, bool], path: Path | None = None) -> None:
-        """Count the failure, refuse the party (both servers when it cannot be told)
-        and raise."""
+              replicas: Mapping[str, ReplicaSet], path: Path | None = None) -> None:
+        """Count the failure, refuse the party (both servers when it cannot be told:
+        ``evaluator-or-ot``), pass over its replica for good, and raise."""
         self.failed += 1
         roles = {"garbler": ("garbler",), "evaluator": ("evaluator",)}.get(
             party, ("garbler", "evaluator"))
         links = {"garbler": session.garbler, "evaluator": session.evaluator}
         for role in roles:
-            self.refused[_fingerprint(links[role])] = party
+            self.refused[_server(links[role])] = party
+            replicas[role].shun_link(links[role], math.inf)
         raise IntegrityFailure(party, run, detail, path, links[roles[0]],
-                               retry=all(several[role] for role in roles))
+                               retry=all(replicas[role].several() for role in roles))
 
 
 def named_signer(garbler: Link) -> dict[str, bytes]:
@@ -248,8 +249,14 @@ def _regarble(s: _Screened) -> tuple[bytes, np.ndarray]:
 
 
 def _fingerprint(link: Link) -> str:
+    """The SHA-256 of the server's certificate (hex)."""
     identity = link.conn.identity
-    return identity.fingerprint if identity is not None else f"{link.where}"
+    return identity.fingerprint if identity is not None else ""
+
+
+def _server(link: Link) -> str:
+    """One server: its certificate and address (replicas may share a certificate)."""
+    return f"{_fingerprint(link)}@{link.where}"
 
 
 def _certificate(link: Link) -> bytes:

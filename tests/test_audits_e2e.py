@@ -332,3 +332,45 @@ def test_an_audit_rate_outside_0_1_is_bad_usage():
     assert done.returncode == 2 and "--audit-rate" in done.stderr
     with pytest.raises(ValueError, match="--audit-rate"):
         Options(audit_rate=-0.1)
+
+
+def test_in_a_fleet_a_cheating_replica_is_refused_and_the_run_served_by_another(
+        cache, tmp_path, honest, monkeypatch):
+    """Two evaluator replicas behind one name, one returning wrong labels: its first run
+    fails the integrity check, runs again on the other, and the cheater gets no session
+    after that; the pose is the honest one."""
+    from snail_client import replicas
+    from snail_common.net.conn import parse_addr
+
+    name = "evaluators.snail.test"
+    tls_dir = make_certs(tmp_path / "tls", hosts=[name])
+    common = ["--tls-dir", str(tls_dir), "--log-level", "info"]
+    env = {"SNAIL_CACHE_DIR": str(cache)}
+    evaluators = [start_daemon("evaluator", common, tmp_path / f"evaluator{i}.log",
+                               env={**env, "SNAIL_FAILPOINTS": fp})
+                  for i, fp in enumerate(("evaluator.output_label=always", ""))]
+    flags = [f for e in evaluators for f in ("--evaluator", e.address)]
+    garbler = start_daemon("garbler", [*flags, *common], tmp_path / "garbler.log", env=env)
+    addresses = [parse_addr(e.address) for e in evaluators]
+
+    async def both(host, port):
+        return list(addresses) if host == name else [(host, port)]
+
+    monkeypatch.setattr(replicas, "resolve", both)
+    try:
+        with SecureRunner(garbler.address, f"{name}:{addresses[1][1]}", tls_dir,
+                          audit_rate=0.0, busy_wait=60) as runner:
+            result = localize(load_problem(PROBLEM), Options(audit_rate=0.0),
+                              GarbledBackend(runner))
+            again = localize(load_problem(PROBLEM), Options(audit_rate=0.0),
+                             GarbledBackend(runner))
+    finally:
+        for daemon in (garbler, *evaluators):
+            daemon.stop()
+    assert result["audits"]["failed"] == 1 and result["retries"] >= 1
+    assert again["audits"]["failed"] == 0
+    for key in ("rvec", "tvec", "status"):
+        assert result[key] == honest[key] == again[key], key
+    served = [sum(json.loads(x).get("outcome") == "ok" for x in e.log.read_text()
+                  .splitlines() if '"event": "session"' in x) for e in evaluators]
+    assert served[1] >= 40 - served[0] and served[0] <= 3, served
