@@ -50,12 +50,12 @@ from .links import Link, ServiceError
 from .replicas import ReplicaSet
 from .sessions import Prepared
 
-# The default share of runs audited (snail-bench audits, native engine): an audit costs
-# the client 3.7 ms of CPU at n = 6 (an unaudited run 1.4 ms; the two servers spend about
-# 20 ms on the run) and 0.1 s at n = 256 (a run takes 0.4-0.5 s). At 1/8 the client's
-# CPU per run grows by 0.46 ms (n = 6) and 12 ms (n = 256, under 3 % of a run's time),
-# and a garbler cheating on every run of a padded localization (20 runs) is caught with
-# probability 1 - (7/8)^20 = 0.93 in that localization.
+# The default share of runs audited (snail-bench audits, native engine, docs/performance.md):
+# an audit costs the client 3 ms of CPU at n = 6 (an unaudited run 1.4 ms; the two servers
+# spend about 17 ms on the run) and 0.1 s at n = 256 (a run takes 0.4-0.5 s). At 1/8 the
+# client's CPU per run grows by 0.37 ms (n = 6) and 12 ms (n = 256, under 3 % of a run's
+# time), and a garbler cheating on every run of a padded localization (20 runs) is caught
+# with probability 1 - (7/8)^20 = 0.93 in that localization.
 DEFAULT_AUDIT_RATE = 1 / 8
 _DRAW = 1 << 53
 INTEGRITY = "integrity"
