@@ -6,9 +6,11 @@ it evaluates it (in the worker pool, frame by frame), and before it answers chec
 the digest signed is the digest of the bytes it received, and that the signature
 verifies under the garbler key the client named in its ``session_start`` (``signer``): a
 mismatch fails the session with ``digest``, naming the garbler or the server link, and
-nothing is returned. The signed digest then goes to the client in the ``stats``, which
-the client checks itself (its audit): so the client holds the garbler's commitment to
-exactly the bytes that were evaluated, and this evaluator cannot stand another one in.
+nothing is returned (a client that names no key, one that checks nothing itself, gets
+the digest compared but no signature checked). The signed digest then goes to the
+client in the ``stats``, which the client checks itself (its audit): so the client holds
+the garbler's commitment to exactly the bytes that were evaluated, and this evaluator
+cannot stand another one in.
 
 Mixed into ``EvaluatorDaemon``; its call sites in tables.py are one line each.
 Failpoints (snail_common/failpoints.py): ``evaluator.output_label`` flips a bit of the
