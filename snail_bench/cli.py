@@ -13,6 +13,7 @@ import click
 from snail_client.verbosity import VerbosityGroup
 from snail_common import families
 
+from .auditcmd import audits, verify_evidence
 from .checkcmd import accuracy, fuzz_cmd, soak
 from .circuitcmd import bristol, circuit, compiler, engine, ops
 from .netcmd import netem, paper
@@ -32,7 +33,7 @@ def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
 
 
 for command in (netem, paper, bristol, compiler, ops, circuit, engine, service, soak, accuracy,
-                fuzz_cmd):
+                fuzz_cmd, audits, verify_evidence):
     main.add_command(command)
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from snail_common.net.conn import new_event_loop
 from snail_common.net.linkrates import AUTO
 
+from .audit import DEFAULT_AUDIT_RATE, Audits
 from .links import DEFAULT_LINK_TIMEOUT
 from .secure import DEFAULT_AHEAD, DEFAULT_BUSY_WAIT, DEFAULT_TIMEOUT, AsyncSecureRunner
 from .sessions import Address, FixedInputs, Invocation
@@ -54,11 +55,13 @@ class SecureRunner:
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
                  link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 scheme: str = AUTO) -> None:
+                 scheme: str = AUTO, audit_rate: float = DEFAULT_AUDIT_RATE,
+                 evidence_dir: str | Path | None = None) -> None:
         self._loop = new_event_loop()
+        audits = Audits(audit_rate, Path(evidence_dir) if evidence_dir else None)
         self._runner = AsyncSecureRunner(garbler_addr, evaluator_addr, tls_dir, timeout,
                                          connect_timeout, ahead, busy_wait, cert_name,
-                                         link_timeout, scheme)
+                                         link_timeout, scheme, audits)
 
     def use_frame(self, handle: bytes, map_owner: str) -> None:
         """Map-owner circuits take this frame's map-owner inputs (see the async runner)."""
@@ -117,6 +120,11 @@ class SecureRunner:
 
     def health(self, role: str) -> dict[str, Any]:
         return self._complete(self._runner.health(role))
+
+    @property
+    def audits(self) -> Audits:
+        """The runner's audits: their rate, counts and the servers refused (audit.py)."""
+        return self._runner.audits
 
     @property
     def scheme(self) -> str:

@@ -28,6 +28,7 @@ from snail_common.net.linkrates import AUTO
 from snail_common.net.parent import child_env
 from snail_common.net.tls import make_certs
 
+from .audit import DEFAULT_AUDIT_RATE
 from .blocking import SecureRunner
 from .links import DEFAULT_LINK_TIMEOUT, ServiceError
 from .secure import DEFAULT_BUSY_WAIT
@@ -167,19 +168,23 @@ def connected(garbler: str | None = None, evaluator: str | None = None,
               tls_dir: str | None = None, daemon_args: tuple[str, ...] = (),
               busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
               link_timeout: float = DEFAULT_LINK_TIMEOUT, scheme: str = AUTO,
-              maps: Sequence[str | Path] = (),
+              maps: Sequence[str | Path] = (), audit_rate: float = DEFAULT_AUDIT_RATE,
+              evidence_dir: str | Path | None = None,
               ) -> Iterator[tuple[SecureRunner, Services | None]]:
     """A runner for the servers at these addresses, or for embedded ones started for the
     block with ``daemon_args`` and a map owner per map of ``maps`` (yielded too, so a
-    caller can watch them; None for remote servers)."""
+    caller can watch them; None for remote servers); ``audit_rate`` and
+    ``evidence_dir``: its audits (audit.py)."""
     check_addresses(garbler, evaluator, tls_dir)
+    audits = {"audit_rate": audit_rate, "evidence_dir": evidence_dir}
     if garbler:
         with SecureRunner(garbler, evaluator, tls_dir, busy_wait=busy_wait,
                           link_timeout=link_timeout, scheme=scheme,
-                          cert_name=cert_name) as runner:
+                          cert_name=cert_name, **audits) as runner:
             yield runner, None
         return
     with embedded_services(extra_args=daemon_args, maps=maps) as services, SecureRunner(
             services.garbler_addr, services.evaluator_addr, services.tls_dir,
-            busy_wait=busy_wait, link_timeout=link_timeout, scheme=scheme) as runner:
+            busy_wait=busy_wait, link_timeout=link_timeout, scheme=scheme,
+            **audits) as runner:
         yield runner, services

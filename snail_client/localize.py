@@ -33,6 +33,7 @@ from snail_common.loc.trust import DEFAULT_MAX_RMS_PX, assess, degenerate, pose_
 from snail_common.net.linkrates import AUTO
 from snail_common.pnp.spec import Spec
 
+from .audit import DEFAULT_AUDIT_RATE, IntegrityFailure
 from .blocking import SecureRunner
 from .embedded import check_addresses, connected
 from .links import DEFAULT_LINK_TIMEOUT
@@ -56,11 +57,16 @@ class Options(PipelineOptions):
     scheme: str = AUTO
     max_rms_px: float = DEFAULT_MAX_RMS_PX
     cert_name: str = "client"
+    audit_rate: float = DEFAULT_AUDIT_RATE  # share of runs the client garbles again
+    evidence: str | None = None  # folder for the evidence of a caught garbler
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.backend not in BACKENDS:
             raise ValueError(f"--backend: expected one of {BACKENDS}, got {self.backend!r}")
+        if not 0.0 <= self.audit_rate <= 1.0:
+            raise ValueError(f"--audit-rate: expected a share in [0, 1], got "
+                             f"{self.audit_rate!r}")
         check_addresses(self.garbler, self.evaluator, self.tls_dir)
 
 
@@ -116,8 +122,9 @@ def backend_for(options: Options) -> Iterator[Backend]:
     else:
         with connected(options.garbler, options.evaluator, options.tls_dir,
                        busy_wait=options.busy_wait, cert_name=options.cert_name,
-                       link_timeout=options.link_timeout,
-                       scheme=options.scheme) as (runner, _):
+                       link_timeout=options.link_timeout, scheme=options.scheme,
+                       audit_rate=options.audit_rate,
+                       evidence_dir=options.evidence) as (runner, _):
             yield GarbledBackend(runner)
 
 
@@ -131,15 +138,39 @@ def localize(problem: Problem, options: Options, backend: Backend,
     if reason is not None and start is not None:
         return _degenerate_record(problem, options, start, reason)
     before, schemes = backend.traffic(), Counter(getattr(backend, "schemes", {}))
-    retried = _retries(backend)
-    result = run_pipeline(problem, options, backend, initial)
+    retried, audited = _retries(backend), audit_counts(backend)
+    try:
+        result = run_pipeline(problem, options, backend, initial)
+    except IntegrityFailure as exc:  # the frame's audits go with its failure
+        exc.audits = audits_since(audited, audit_counts(backend))
+        raise
     after = backend.traffic()
     schemes = Counter(getattr(backend, "schemes", {})) - schemes
     out = record(result, options, {link: after.get(link, 0) - before.get(link, 0)
                                    for link in LINKS}, problem, schemes)
     if isinstance(backend, GarbledBackend):
         out["retries"] = _retries(backend) - retried
+        out["audits"] = audits_since(audited, audit_counts(backend))
     return out
+
+
+def audit_counts(backend: Backend) -> dict[str, int]:
+    """The garbled backend's audits so far: runs checked, audited, failed (audit.py)."""
+    if isinstance(backend, GarbledBackend):
+        return backend.secure.audits.counts()
+    return {"runs": 0, "audited": 0, "failed": 0}
+
+
+def audits_since(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
+    return {k: after[k] - before.get(k, 0) for k in after}
+
+
+def failure_record(exc: IntegrityFailure, options: Options) -> dict:
+    """The snail-result/1 record of a frame that failed an integrity check: no pose, the
+    party to blame (docs/formats.md)."""
+    return {"format": RESULT_FORMAT, "status": "failed", "converged": False,
+            "error": exc.record(), "audits": exc.audits, "backend": options.backend,
+            "algorithm": options.algorithm, "mode": options.mode}
 
 
 def _retries(backend: Backend) -> int:

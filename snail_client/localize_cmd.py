@@ -1,7 +1,8 @@
 """``snail-client localize`` and ``snail-client track`` (contract: shared/FORMATS.md).
 
 Exit status: 0 success (not converging is reported, not a failure), 1 the run failed
-(network, server, integrity), 2 bad usage or bad input, with one line naming the field.
+(network, server, integrity: then the record's ``error`` names the party to blame,
+audit.py), 2 bad usage or bad input, with one line naming the field.
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
 from snail_common.net.tls import TLSFileError
 
 from . import owner_localize
+from .audit import DEFAULT_AUDIT_RATE, IntegrityFailure
 from .inputs.options import load_frame, load_frames, localize_inputs, track_inputs
 from .links import DEFAULT_LINK_TIMEOUT, ServiceError
-from .localize import BACKENDS, Options, backend_for, localize
+from .localize import BACKENDS, Options, backend_for, failure_record, localize
 from .progress import bar
 from .secure import DEFAULT_BUSY_WAIT
 from .verbosity import flags as _verbosity
@@ -100,6 +102,16 @@ def _options(fn: Callable) -> Callable:
                      help="A server link a run waits on is probed after a fifth of this "
                           "in silence and given up (the run fails, naming the link) after "
                           "this long: a partition or a stalled server."),
+        click.option("--audit-rate", type=click.FloatRange(0, 1), default=DEFAULT_AUDIT_RATE,
+                     show_default=True, metavar="P",
+                     help="Share of secure runs the client garbles again itself from its "
+                          "own seed and offset, to catch a garbler whose tables or "
+                          "zero-labels are not the circuit's (drawn at random per run; "
+                          "every run that fails the integrity check is audited too). "
+                          "Nothing the servers see tells them which runs were audited."),
+        click.option("--evidence", type=click.Path(file_okay=False), metavar="DIR",
+                     help="Write a snail-evidence/1 file here when an audit catches the "
+                          "garbler: anyone can check it with 'snail-bench verify-evidence'."),
         click.option("--json", "as_json", is_flag=True,
                      help="Print the snail-result/1 JSON record(s) instead of a summary."),
         click.option("--output", type=click.Path(dir_okay=False, writable=True),
@@ -116,7 +128,7 @@ def _make_options(kw: dict) -> Options:
             "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
             "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations",
             "busy_wait", "max_rms_px", "cert_name", "solve", "link_timeout",
-            "scheme", "arith")})
+            "scheme", "arith", "audit_rate", "evidence")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 
@@ -244,6 +256,12 @@ def localize_cmd(input_path: str | None, as_json: bool, output: str | None,
         _fail(2, f"--tls-dir: {e}")
     except (ProblemError, ValueError) as e:
         _fail(2, str(e) if map_owner or map_path else f"{input_path}: {e}")
+    except IntegrityFailure as e:  # no pose: the party to blame, in the record too
+        failed = failure_record(e, options)
+        if as_json:
+            click.echo(json.dumps(failed))
+        _write(output, [failed], single=True)
+        _fail(1, str(e))
     except ServiceError as e:
         _fail(1, str(e))
     except KeyboardInterrupt:
@@ -287,7 +305,12 @@ def track_cmd(input_path: str | None, as_json: bool, output: str | None, fail_fa
                 except (ProblemError, ValueError, ServiceError) as e:
                     worst = _worse(worst, 1 if isinstance(e, ServiceError) else 3)
                     click.echo(f"snail-client: frame {index} ({name}): {e}", err=True)
-                    records.append({"frame": index, "input": name, "failure": str(e)})
+                    failed = {"frame": index, "input": name, "failure": str(e)}
+                    if isinstance(e, IntegrityFailure):
+                        failed.update(failure_record(e, options))
+                        if as_json:
+                            click.echo(json.dumps(failed))
+                    records.append(failed)
                     if fail_fast:
                         break
                     continue

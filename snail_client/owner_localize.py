@@ -27,8 +27,9 @@ from snail_common.loc.owner import localize_known, localize_shared, owner_values
 from snail_common.loc.pipeline import Localized
 from snail_common.loc.problem import ProblemError
 
+from .audit import IntegrityFailure
 from .embedded import connected, start_daemon
-from .localize import RESULT_FORMAT, GarbledBackend, Options
+from .localize import RESULT_FORMAT, GarbledBackend, Options, audit_counts, audits_since
 from .mapowner import MapOwnerLink
 from .sessions import LINKS, OWNER_LINKS
 
@@ -69,7 +70,8 @@ def localize_frame(path: str, options: Options, map_owner: str | None,
     with connected(options.garbler, options.evaluator, options.tls_dir,
                    busy_wait=options.busy_wait, cert_name=options.cert_name,
                    link_timeout=options.link_timeout, scheme=options.scheme,
-                   maps=(map_path,) if map_path else ()) as (runner, services):
+                   maps=(map_path,) if map_path else (), audit_rate=options.audit_rate,
+                   evidence_dir=options.evidence) as (runner, services):
         tls_dir = services.tls_dir if services is not None else options.tls_dir
         if services is not None and services.map_owners:
             map_owner = services.map_owners[0].address
@@ -83,13 +85,20 @@ def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
               options: Options) -> dict:
     """One frame over an open map-owner link and a garbled backend."""
     before = {**backend.traffic(), **link.traffic}
+    audited = audit_counts(backend)
     published = link.published or link.open()
     handle, masked = link.select(frame.map_ids)
     backend.secure.use_frame(handle, link.address)
-    result = localize_shared(frame, published, masked, options, backend)
+    try:
+        result = localize_shared(frame, published, masked, options, backend)
+    except IntegrityFailure as exc:  # the frame's audits go with its failure
+        exc.audits = audits_since(audited, audit_counts(backend))
+        raise
     after = {**backend.traffic(), **link.traffic}
-    return record(result, options, {k: after.get(k, 0) - before.get(k, 0)
-                                    for k in (*LINKS, *MAP_OWNER_LINKS)})
+    out = record(result, options, {k: after.get(k, 0) - before.get(k, 0)
+                                   for k in (*LINKS, *MAP_OWNER_LINKS)})
+    out["audits"] = audits_since(audited, audit_counts(backend))
+    return out
 
 
 @contextlib.contextmanager

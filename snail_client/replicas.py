@@ -97,11 +97,12 @@ class ReplicaSet:
         """Pass over the replica at ``addr`` for ``seconds`` while others answer."""
         self.shunned[addr] = time.monotonic() + seconds
 
-    def shun_link(self, link: Link) -> None:
-        """Shun the replica behind ``link`` (if it is one of this set's)."""
+    def shun_link(self, link: Link, seconds: float = SHUN_S) -> None:
+        """Shun the replica behind ``link`` (if it is one of this set's) for ``seconds``
+        (for good: one caught cheating, audit.py)."""
         for addr, mine in self.links.items():
             if mine is link:
-                self.shun(addr)
+                self.shun(addr, seconds)
 
     def several(self) -> bool:
         """Whether the name stood for more than one replica when last resolved."""

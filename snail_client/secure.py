@@ -46,9 +46,7 @@ import numpy as np
 from snail_common import families
 from snail_common.circuit import registry
 from snail_common.gc import (
-    IntegrityError,
     active_input_labels,
-    decode_output_labels,
     fresh_delta,
     labels_to_bytes,
 )
@@ -74,6 +72,7 @@ from snail_common.net.linkrates import (
 from snail_common.pnp.spec import owner_bits
 
 from .ahead import AheadPool
+from .audit import Audits, named_signer
 from .links import DEFAULT_LINK_TIMEOUT, Link, ServiceError, labels_and_stats
 from .replicas import ReplicaSet
 from .retry import blame, retryable
@@ -104,8 +103,9 @@ class AsyncSecureRunner:
                  connect_timeout: float = 10.0, ahead: int = DEFAULT_AHEAD,
                  busy_wait: float = DEFAULT_BUSY_WAIT, cert_name: str = "client",
                  link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 scheme: str = AUTO) -> None:
+                 scheme: str = AUTO, audits: Audits | None = None) -> None:
         families.register_all()
+        self.audits = audits if audits is not None else Audits()  # audit.py
         # each a NAME:PORT that may stand for several replicas (replicas.py)
         self.garbler_addr = parse_address(garbler_addr, "garbler address")
         self.evaluator_addr = parse_address(evaluator_addr, "evaluator address")
@@ -216,6 +216,7 @@ class AsyncSecureRunner:
         session = (self.ahead.take(circuit_id, bits, frame)
                    or await self.ahead.in_flight(circuit_id, bits, frame)
                    or await self._prepare(circuit_id, fixed=False))
+        self.audits.admit(session, self._cancel, self.replicas)  # none caught cheating
         iface, sid = session.iface, session.sid
         if bits.dtype != np.bool_ or bits.shape != (iface.n_inputs,):
             self._cancel(session)
@@ -247,11 +248,9 @@ class AsyncSecureRunner:
             session.evaluator.waiting.pop(sid, None)
         (zero, g_in, g_stats), (active, e_in, e_stats) = results
         wall = time.perf_counter() - t0
-        try:
-            outputs = decode_output_labels(session.delta, zero, active)
-        except IntegrityError as exc:
-            raise ServiceError(f"{circuit_id}: integrity check failed, the result was "
-                               f"tampered with: {exc}") from None
+        # decoded once the signed digests hold and, if drawn or failing, an audit (audit.py)
+        outputs = await self.audits.check(session, zero, active, g_stats, e_stats,
+                                          self.replicas)
         traffic = {"client_to_garbler": session.sent_g,
                    "client_to_evaluator": session.sent_e + sent_e,
                    "garbler_to_evaluator": int(g_stats["traffic"]["garbler_to_evaluator"]),
@@ -265,7 +264,8 @@ class AsyncSecureRunner:
                        float(e_stats["timing"].get("wait_s", 0.0)) if ahead else 0.0)
         self._cycled(session, e_stats["timing"], wall)
         timing["client_ahead"] = float(self.ahead.depth)  # the depth it sized from them
-        self.last = Invocation(outputs, traffic, wall, timing, ahead, sent_e, session.scheme)
+        self.last = Invocation(outputs, traffic, wall + self.audits.audit_s, timing, ahead,
+                               sent_e, session.scheme)
         self.invocations += 1
         for k, v in traffic.items():
             self.totals[k] = self.totals.get(k, 0) + v
@@ -356,7 +356,7 @@ class AsyncSecureRunner:
         try:
             sent_e = evaluator.conn.write(messages.make(
                 "session_start", sid=sid, circuit=circuit_id, hash=chash,
-                scheme=scheme, **reserve))
+                scheme=scheme, **reserve, **named_signer(garbler)))
             if fixed is not None:
                 sent_e += send_fixed_labels(evaluator, sid, seed, delta, fixed, todo)
             sent_g = garbler.conn.write(messages.make(
@@ -369,7 +369,7 @@ class AsyncSecureRunner:
             evaluator.cancel(sid)
             raise
         return Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
-                         sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo, scheme)
+                        sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo, scheme, key)
 
     @staticmethod
     def _adopt(session: Prepared, fixed: FixedInputs) -> bool:

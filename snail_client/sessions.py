@@ -61,6 +61,7 @@ class Prepared:
     # still to send when invoked: those not sent with ``fixed``
     todo: np.ndarray = field(default_factory=lambda: np.ones(0, bool))
     scheme: str = DEFAULT_SCHEME  # the garbling scheme asked of both servers
+    key: bytes = b""  # the hash key asked of the garbler (an audit garbles again with it)
 
     @property
     def usable(self) -> bool:

@@ -8,6 +8,7 @@ from snail_common import families
 from snail_common.net import tls
 from snail_common.net.cli import (
     address,
+    arm_failpoints,
     choose_engine,
     configure_caches,
     daemon_options,
@@ -32,6 +33,7 @@ def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> Non
     labels and returns the active output labels (see snail_evaluator.daemon)."""
     exit_with_parent()
     logger = setup("evaluator", log_level_of(log_level, kwargs))
+    arm_failpoints("evaluator", "snail-evaluator", logger)
     try:
         ctx = tls.server_context(tls_dir, "evaluator")
         daemon = EvaluatorDaemon(options_from({**kwargs, "tls_dir": tls_dir}), logger)

@@ -89,6 +89,7 @@ class ClientSide:
                                  outcome=exc.code, reason=exc.message)
             return None
         s.client = conn
+        s.signer = msg.get("signer")  # the garbler key its tables must verify under
         return s
 
     async def _client_load(self, s: Session) -> None:

@@ -8,6 +8,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from snail_common.gc.attest import TableDigest
 from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net.chunks import LabelAssembler
 from snail_common.net.conn import Connection
@@ -46,6 +47,16 @@ class Session:
     # epoch seconds of the session's events here: first_received and last_received
     # (table frames), labels (the client's request complete), eval_end; tables_wait_s
     timeline: dict[str, float] = field(default_factory=dict)
+    # the signed digest (attest.py): the garbler key the client named, the stream's
+    # digest and header as fed, the garbler's tables_end, CPU seconds of the check
+    signer: bytes | None = None
+    digest: TableDigest = field(default_factory=TableDigest)
+    head: bytes = b""
+    tables_end: dict[str, Any] | None = None
+    read_ahead: tuple[dict[str, Any], int] | None = None  # what came after the last frame
+    block_gates: int = 0
+    check_s: dict[str, float] = field(default_factory=lambda: {"digest_s": 0.0,
+                                                                "verify_s": 0.0})
 
     def record(self, outcome: str, reason: str = "") -> dict:
         """This session's log line fields (see Daemon.log_session)."""
@@ -53,6 +64,15 @@ class Session:
                 "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
                 "seconds": time.monotonic() - self.started, "outcome": outcome,
                 "reason": reason, "scheme": self.scheme, "timeline": self.timeline}
+
+
+class StreamCut(Exception):
+    """A session ended mid-stream for a reason of its own (its client, a timeout, an
+    eviction, the garbler's ``error``): the stream itself is sound (tables.py)."""
+
+    def __init__(self, garbler_ended: bool) -> None:
+        super().__init__("the session ended before its stream")
+        self.garbler_ended = garbler_ended  # the garbler's error {sid} ended it
 
 
 def consume_failure(future: asyncio.Future) -> None:

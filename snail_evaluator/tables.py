@@ -27,20 +27,12 @@ from snail_common.net.errors import (
     ProtocolError,
 )
 
+from .attest import Attested
 from .lanes import EvalLane, Solo
-from .session import Session
+from .session import Session, StreamCut
 
 
-class StreamCut(Exception):
-    """A session ended mid-stream for a reason of its own (its client, a timeout, an
-    eviction, the garbler's ``error``): the stream itself is sound."""
-
-    def __init__(self, garbler_ended: bool) -> None:
-        super().__init__("the session ended before its stream")
-        self.garbler_ended = garbler_ended  # the garbler's error {sid} ended it
-
-
-class GarblerSide:
+class GarblerSide(Attested):
     """The evaluator's garbler connections."""
 
     async def _serve_garbler(self, conn: Connection) -> None:
@@ -82,16 +74,18 @@ class GarblerSide:
             try:
                 ev, received, ahead, t_labels, waited = await self._evaluate(conn, s,
                                                                              schedule)
+                await self._attested(conn, s)  # the garbler's signed digest (attest.py)
             finally:
                 self.counters["streaming"] -= 1
             received += size
             t_done = time.monotonic()
             s.timeline["eval_end"] = time.time()
-            outputs = ev.output_labels()
+            outputs = self._outputs(ev)
             if s.failure is not None:  # cancelled while the last frame was evaluated
                 raise StreamCut(garbler_ended=False)
         except StreamCut as cut:  # the session ended, the stream is sound: keep the link
-            await self._end_stream(conn, sid, s.failure, answered=cut.garbler_ended)
+            await self._end_stream(conn, sid, s.failure, answered=cut.garbler_ended,
+                                   read=s.read_ahead)
             return
         except ProtocolError as exc:
             self._fail(s, ProtocolError(exc.code, f"the garbler's table stream: {exc.message}"))
@@ -114,7 +108,8 @@ class GarblerSide:
                                            "garbled_ahead": ahead},
                 timing={"ahead_s": t_labels - t0, "wait_s": waited,
                         "evaluate_s": t_done - t_labels, "lanes": float(ev.lanes),
-                        **{f"t_{k}": v for k, v in s.timeline.items()}}))
+                        **{f"t_{k}": v for k, v in s.timeline.items()}, **s.check_s},
+                **self._forwarded(s)))
         except ConnectionClosed:
             pass  # the client left after its labels arrived: nobody to tell
         self._complete(s)
@@ -123,16 +118,19 @@ class GarblerSide:
         await conn.drain()
 
     async def _end_stream(self, conn: Connection, sid: bytes, why: ProtocolError,
-                          answered: bool = False) -> None:
+                          answered: bool = False,
+                          read: tuple[dict[str, Any], int] | None = None) -> None:
         """A session ended before its stream did (refused, cancelled, evicted, timed
         out): tell the garbler why, and unless its own ``error`` {sid} already ``answered``
-        that, read on (discarding the session's frames) until it comes: the connection
-        is then in step for the next session (snail_garbler/streams.py)."""
+        that, read on (from the message already ``read``, if any), discarding the
+        session's frames and signed digest, until it comes: the connection is then in
+        step for the next session (snail_garbler/streams.py)."""
         conn.post(messages.error(why.code, why.message, sid))
         while not answered:
-            msg, _ = await conn.recv(self.options.session_timeout)
-            if msg["t"] == "tables" and msg["sid"] == sid:
-                if isinstance(msg["data"], memoryview):
+            msg, _ = read or await conn.recv(self.options.session_timeout)
+            read = None
+            if msg["t"] in ("tables", "tables_end") and msg["sid"] == sid:
+                if isinstance(msg.get("data"), memoryview):
                     conn.recycle(msg["data"])
                 continue
             if msg["t"] != "error" or msg.get("sid") != sid:
@@ -169,8 +167,10 @@ class GarblerSide:
                 if s.failure is not None:  # its client cancelled, a timeout, an eviction
                     raise StreamCut(garbler_ended=False)
                 if ev is None and s.ready.done():
-                    ev = (await self.lanes.lane(s.circuit, schedule, s.ready.result())
-                          if laned else Solo(schedule, s.ready.result(), scheme_id(s.scheme)))
+                    ev = self._digested(s, await self.lanes.lane(s.circuit, schedule,
+                                                                 s.ready.result())
+                                        if laned else Solo(schedule, s.ready.result(),
+                                                           scheme_id(s.scheme)))
                     if s.watchdog:
                         s.watchdog.cancel()
                     t_labels = time.monotonic()
@@ -206,6 +206,8 @@ class GarblerSide:
                     if msg["t"] == "tables" and isinstance(msg["data"], memoryview):
                         conn.recycle(msg["data"])
                     raise StreamCut(garbler_ended=False)
+                if self._tables_end(s, msg, ev is not None):  # its signed digest: attest.py
+                    continue
                 if msg["t"] != "tables" or msg["sid"] != s.sid:
                     raise ProtocolError(UNEXPECTED, f"expected tables of this session, the "
                                                     f"garbler sent {msg['t']}")
@@ -232,7 +234,7 @@ class GarblerSide:
             self.ahead_buffered -= s.queued
             s.queued = 0
             if recv is not None:
-                recv.cancel()
+                self._read_ahead(s, recv)  # it may hold the signed digest (attest.py)
         return ev, received, ahead, t_labels, waited
 
     def _queue_full(self, s: Session) -> bool:

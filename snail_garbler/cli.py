@@ -9,6 +9,7 @@ from snail_common.net import tls
 from snail_common.net.cli import (
     address,
     addresses,
+    arm_failpoints,
     choose_engine,
     configure_caches,
     daemon_options,
@@ -52,6 +53,7 @@ def main(listen: tuple[str, int], evaluators: tuple[tuple[str, int], ...],
     tables to the evaluator (see snail_garbler.daemon)."""
     exit_with_parent()
     logger = setup("garbler", log_level_of(log_level, kwargs))
+    arm_failpoints("garbler", "snail-garbler", logger)
     try:
         server_ctx = tls.server_context(tls_dir, "garbler")
         client_ctx = tls.client_context(tls_dir, "garbler")

@@ -68,6 +68,7 @@ from snail_common.net.service import Daemon, Options
 from snail_common.net.tcpinfo import link_advice
 from snail_common.net.tcpinfo import read as tcp_info
 
+from .attest import Attesting
 from .lanes import LaneBatcher, LaneView
 from .owner import OwnerInputs
 from .streams import State, TableLink, TableLinks
@@ -106,7 +107,7 @@ def frame_plan(schedule: Schedule, scheme: int = SCHEME_HALF_GATES,
     return block, max(size, 8 * table_words(scheme, block))
 
 
-class GarblerDaemon(Daemon):
+class GarblerDaemon(Attesting, Daemon):
     role = "garbler"
     allowed = ("client",)
     gone_event = "client_gone"
@@ -271,13 +272,13 @@ class GarblerDaemon(Daemon):
                timing: dict[str, float], owner: dict[str, int]) -> int:
         """Queue the output zero-labels and stats for the client; the bytes queued (0 if
         it is gone)."""
+        zero, signed = self.attest.reply(garbler, timing, client.peer_name)  # attest.py
         try:
-            return (write_labels(client, "output_zero_labels", sid,
-                                 garbler.output_zero_labels)
+            return (write_labels(client, "output_zero_labels", sid, zero)
                     + client.write(messages.make("stats", sid=sid,
                                                  traffic={"garbler_to_evaluator": sent,
                                                           **owner},
-                                                 timing=timing)))
+                                                 timing=timing, **signed)))
         except ConnectionClosed:
             event(self.log, "client_gone", peer=client.peer_name, sid=sid,
                   reason="before its result was sent")
@@ -302,7 +303,7 @@ class GarblerDaemon(Daemon):
                                         hash=req["hash"],
                                         scheme=req.get("scheme", DEFAULT_SCHEME),
                                         **({"ahead": True} if req.get("ahead") else {})))
-        frames = garbler.frames()
+        frames = self.attest.frames(garbler, req)  # hashed as sent (attest.py)
         clock = {"cpu_s": 0.0}
         pending = self.submit(_timed_next, frames, clock)
         timeline: dict[str, float] = {}
@@ -320,6 +321,7 @@ class GarblerDaemon(Daemon):
                     raise TimeoutError(f"the evaluator took no tables for {timeout:g} s") \
                         from None
                 timeline["last_sent"] = time.time()  # in the kernel's send buffer
+            sent += evaluator.write(self.attest.end(garbler))  # the signed digest
             link.state = State.SENT
             timeline["garbled"] = clock.get("garbled", time.time())
         finally:

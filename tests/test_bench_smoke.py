@@ -55,8 +55,8 @@ def _json(out: subprocess.CompletedProcess | object, key: str) -> dict:
 
 # every subcommand and the test that runs it below (a new command must add one)
 COVERED = {
-    "bench": {"accuracy", "bristol", "circuit", "compiler", "engine", "fuzz", "netem", "ops",
-              "paper", "service", "soak"},
+    "bench": {"accuracy", "audits", "bristol", "circuit", "compiler", "engine", "fuzz", "netem",
+              "ops", "paper", "service", "soak", "verify-evidence"},
     "demo": {"accuracy", "turbo"},
 }
 
@@ -115,6 +115,23 @@ def test_bench_service():
                "--json")
     assert out.returncode == 0, out.stderr
     assert set(_json(out, "service")) == {"nx-sil-n4"}
+
+
+def test_bench_audits():
+    out = _run("snail_bench.cli", "audits", "--points", "4", "--repeat", "2", "--batches",
+               "1", "--audits", "1")
+    assert out.returncode == 0, out.stderr
+    report = _json(out, "audits")["loc/nx-sil-n4"]
+    assert report["garbler"]["attest_share"]["median"] > 0
+    assert report["client"]["cpu_s_per_audit"]["median"] > 0
+
+
+def test_bench_verify_evidence_of_no_file(tmp_path):
+    """(The real files: tests/test_audits_e2e.py.) One that proves nothing exits 1."""
+    path = tmp_path / "e.json"
+    path.write_text('{"format": "snail-evidence/1"}')
+    out = _run("snail_bench.cli", "verify-evidence", str(path))
+    assert out.returncode == 1 and json.loads(out.stdout)["proven"] is False
 
 
 def test_bench_soak():

@@ -1,8 +1,9 @@
 """The floor plan holds: no module imports a package on its own floor or above it.
 
-Floors, bottom up (docs/architecture.md draws them): the circuit compiler; arithmetic and
-the garbling engine; the PnP circuit families and the network layer; the client-side
-localization and the family registration; the roles; the benchmarks and demos. A lower
+Floors, bottom up (docs/architecture.md draws them): the failpoints registry; the circuit
+compiler; arithmetic and the garbling engine; the PnP circuit families and the network
+layer; the client-side localization and the family registration; the roles; the
+benchmarks and demos. A lower
 floor that needs something from above takes it as a parameter or a registration.
 """
 
@@ -15,6 +16,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 FLOORS = {
+    "snail_common.failpoints": 0,
     "snail_common.circuit": 1,
     "snail_common.arith": 2,
     "snail_common.gc": 2,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -9,11 +10,13 @@ from typing import Any, NoReturn
 
 import click
 
+from snail_common import failpoints
 from snail_common.circuit import cache, registry
 from snail_common.gc.engine import ENGINE_ENV, engine_status
 from snail_common.gc.native.build import NativeUnavailable
 
 from .conn import parse_addr
+from .logs import announce
 from .service import Options
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -157,6 +160,19 @@ def choose_engine(prog: str) -> dict[str, str]:
         fail(2, f"${ENGINE_ENV}: {exc}", prog)
     except ValueError as exc:  # it names its variable: $SNAIL_ENGINE or $SNAIL_KERNEL_THREADS
         fail(2, f"${exc}", prog)
+
+
+def arm_failpoints(role: str, prog: str, logger: logging.Logger) -> None:
+    """Arm this daemon's failpoints from $SNAIL_FAILPOINTS (snail_common/failpoints.py),
+    once, at start: a warning line lists them; exit 2 naming the setting when it is
+    malformed or names an unknown point."""
+    try:
+        armed = failpoints.configure(role)
+    except failpoints.FailpointError as exc:
+        fail(2, str(exc), prog)
+    if armed:
+        announce(logger, "failpoints", logging.WARNING, armed=armed,
+                 reason=f"${failpoints.ENV}: this {role} misbehaves on purpose")
 
 
 def fail(code: int, message: str, prog: str | None = None) -> NoReturn:

@@ -23,6 +23,7 @@ TIMEOUT = "timeout"
 PEER_LOST = "peer_lost"  # the other server went away mid-session
 ABORTED = "aborted"  # cancelled by a peer
 STREAM = "stream"  # the garbled-table stream does not fit the circuit
+DIGEST = "digest"  # the tables received are not those the garbler signed (gc/attest.py)
 REVOKED = "revoked"  # the peer certificate is listed in revoked.txt
 SHUTDOWN = "shutdown"
 INTERNAL = "internal"

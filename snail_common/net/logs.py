@@ -56,10 +56,12 @@ def event(logger: logging.Logger, name: str, level: int = logging.INFO,
         logger.log(level, name, extra={_FIELDS: fields})
 
 
-def announce(logger: logging.Logger, name: str, **fields: Any) -> None:
-    """Log event ``name`` at info level whatever the configured level: lifecycle lines
-    (``listening``, ``stopped``) that supervisors and the embedded runner wait for."""
-    record = logger.makeRecord(logger.name, logging.INFO, "(snail)", 0, name, (), None,
+def announce(logger: logging.Logger, name: str, level: int = logging.INFO,
+             **fields: Any) -> None:
+    """Log event ``name`` (at info ``level`` unless told) whatever the configured level:
+    lifecycle lines (``listening``, ``stopped``) that supervisors and the embedded runner
+    wait for, and warnings nobody may miss (armed failpoints)."""
+    record = logger.makeRecord(logger.name, level, "(snail)", 0, name, (), None,
                                extra={_FIELDS: fields})
     for handler in logger.handlers:
         handler.handle(record)

@@ -13,13 +13,21 @@ client -> garbler            ``garble_request``, ``error`` (cancels a sid), ``he
                              ``bye``
 client -> evaluator          ``session_start``, ``input_labels``, ``error``, ``health_request``,
                              ``bye``
-garbler -> evaluator         ``session_start``, ``tables`` ... (one session at a time per
-                             connection); evaluator answers ``done`` or ``error``; an
-                             ``error`` {sid} from either side ends that session's
-                             stream early, answered by the other side's ``error`` {sid}
-                             (snail_garbler/streams.py)
+garbler -> evaluator         ``session_start``, ``tables`` ..., ``tables_end`` (one session
+                             at a time per connection); evaluator answers ``done`` or
+                             ``error``; an ``error`` {sid} from either side ends that
+                             session's stream early, answered by the other side's ``error``
+                             {sid} (snail_garbler/streams.py)
 garbler -> client            ``output_zero_labels`` chunks, then ``stats``; or ``error``
 evaluator -> client          ``output_labels`` chunks, then ``stats``; or ``error``
+
+Signed digests (gc/attest.py): the garbler's ``capabilities`` carry its Ed25519
+``signing_key`` (and ``key_endorsement``, its certificate key's signature over it); the
+client names that key to the evaluator (``session_start`` ``signer``); ``tables_end``
+{sid, digest, signature} signs the stream just sent, which the evaluator checks against
+the bytes it received before it answers, and forwards in its ``stats``
+(``tables_digest``, ``block_gates``, ``tables_signature``); the garbler's ``stats`` carry
+the same digest and block size and ``outputs_signature`` over its zero-labels.
 server -> anyone             ``health`` (reply to ``health_request``), ``error``, ``bye``
 
 The map-owner setting (docs/map-owner.md) adds the role ``mapowner``:
@@ -57,6 +65,7 @@ import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from snail_common.gc.attest import DIGEST_BYTES, PUBLIC_KEY_BYTES, SIGNATURE_BYTES
 from snail_common.gc.engine import ENGINES
 from snail_common.gc.stream import SCHEMES
 
@@ -72,6 +81,7 @@ DATA_CHUNK = 2 << 20  # bytes of a chunked blob (sel_table, map_info ids) per me
 MAX_OT_BYTES = 3 << 20  # one OT message body (u or y): 98,304 chosen OTs
 MAX_ADDRESS = 300  # HOST:PORT
 POINT_BYTES = 32  # an Ed25519 point (ot/group.py)
+MAX_ENDORSEMENT = 80  # a DER ECDSA P-256 signature: at most 72 bytes
 BASE_OTS = 128
 _HASH = re.compile(r"^[0-9a-f]{64}$")
 
@@ -161,6 +171,10 @@ key16 = blob(16)
 circuit = text(128)
 scheme = one_of(tuple(SCHEMES))  # the garbling scheme; absent means half-gates
 chunk = blob(max_size=DATA_CHUNK)
+digest = blob(DIGEST_BYTES)  # BLAKE3 of a table stream (gc/attest.py)
+signature = blob(SIGNATURE_BYTES)  # Ed25519
+public_key = blob(PUBLIC_KEY_BYTES)  # the garbler's Ed25519 signing key
+endorsement = blob(max_size=MAX_ENDORSEMENT)  # ECDSA P-256 (DER) by its certificate key
 ot_body = blob(max_size=MAX_OT_BYTES)
 
 # type -> (required fields, optional fields)
@@ -168,9 +182,10 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "hello": ({"role": one_of(ROLES), "software": text(64), "max_frame": count}, {}),
     "capabilities": ({"role": one_of(ROLES), "software": text(64), "max_frame": count,
                       "families": text_list, "max_sessions": count},
-                     {"max_and_gates": count, "instance": text(64)}),
+                     {"max_and_gates": count, "instance": text(64),
+                      "signing_key": public_key, "key_endorsement": endorsement}),
     "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash},
-                      {"scheme": scheme, "ahead": flag}),
+                      {"scheme": scheme, "ahead": flag, "signer": public_key}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
                         "delta": key16, "key": key16},
                        {"scheme": scheme, "ahead": flag, "frame": key16,
@@ -178,14 +193,18 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
                         "evaluator": text(MAX_ADDRESS), "evaluator_id": text(64)}),
     "input_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
     "tables": ({"sid": sid, "data": blob()}, {}),
+    "tables_end": ({"sid": sid, "digest": digest, "signature": signature}, {}),
     "done": ({"sid": sid}, {}),
     "output_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
     "output_zero_labels": ({"sid": sid, "start": count, "total": count, "labels": labels},
                            {}),
-    "stats": ({"sid": sid, "traffic": number_map(int), "timing": number_map(float)}, {}),
+    "stats": ({"sid": sid, "traffic": number_map(int), "timing": number_map(float)},
+              {"tables_digest": digest, "block_gates": count, "tables_signature": signature,
+               "outputs_signature": signature}),
     "health_request": ({}, {}),
     "health": ({"role": one_of(ROLES), "sessions": number_map(int), "uptime_s": seconds},
-               {"engine": one_of(ENGINES), "engine_reason": text(), "engine_threads": count}),
+               {"engine": one_of(ENGINES), "engine_reason": text(), "engine_threads": count,
+                "failpoints": text_list, "signing_key": text(2 * PUBLIC_KEY_BYTES)}),
     "error": ({"code": text(64), "message": text()}, {"sid": sid}),
     "bye": ({}, {}),
     # the map-owner setting

@@ -22,6 +22,7 @@ from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
+from snail_common import failpoints
 from snail_common.circuit import registry
 from snail_common.circuit.ir import Circuit
 from snail_common.circuit.plan import plan_for
@@ -99,9 +100,10 @@ class Daemon(Listener):
         return self.engine
 
     def health(self) -> dict[str, Any]:
+        armed = failpoints.armed()  # a daemon that misbehaves on purpose says so
         return messages.make("health", role=self.role, sessions=self.metrics.health(),
                              uptime_s=round(time.monotonic() - self.started, 3),
-                             **self.engine)
+                             **self.engine, **({"failpoints": armed} if armed else {}))
 
     def prometheus(self) -> str:
         return self.metrics.prometheus()
@@ -220,10 +222,11 @@ class Daemon(Listener):
     def log_session(self, *, peer: str, sid: bytes, circuit: str, n_and: int,
                     bytes_in: int, bytes_out: int, seconds: float, outcome: str,
                     reason: str = "", scheme: str = "",
-                    timeline: dict[str, float] | None = None) -> None:
+                    timeline: dict[str, float] | None = None, **more: str) -> None:
         """The one JSON line per session, and the counters it adds to. ``timeline``:
         when this daemon saw the session's events (epoch seconds: comparable across
-        hosts with synchronized clocks), e.g. the tables' first and last byte."""
+        hosts with synchronized clocks), e.g. the tables' first and last byte; ``more``:
+        a role's own fields (the garbler's signing key and digest)."""
         self.metrics.session_ended(outcome, n_and, bytes_in, bytes_out, seconds)
         fields: dict[str, Any] = {"peer": peer, "sid": sid, "circuit": circuit,
                                   "and": n_and, "bytes_in": bytes_in,
@@ -233,6 +236,7 @@ class Daemon(Listener):
             fields["scheme"] = scheme
         if reason:
             fields["reason"] = reason
+        fields.update(more)
         if timeline:
             fields["timeline"] = {k: round(v, 6) for k, v in timeline.items()}
         event(self.log, "session", logging.INFO if outcome == OK else logging.WARNING,

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cryptography import x509
-from cryptography.exceptions import UnsupportedAlgorithm
+from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
@@ -257,3 +257,40 @@ def _normalized(entry: str) -> str:
     """Fingerprints compare as lowercase hex without colons; names as written."""
     bare = entry.replace(":", "").lower()
     return bare if re.fullmatch(r"[0-9a-f]{64}", bare) else entry
+
+
+def endorse(tls_dir: str | Path, name: str, message: bytes) -> bytes:
+    """``message`` signed (ECDSA, SHA-256) with the key of certificate ``name`` in
+    ``tls_dir``: how a garbler binds its Ed25519 signing key to its certificate, so that
+    a third party holding only the certificate can tell whose signatures they are."""
+    path = key_path(tls_dir, name)
+    try:
+        key = serialization.load_pem_private_key(path.read_bytes(), None)
+    except (OSError, ValueError, UnsupportedAlgorithm) as exc:
+        raise TLSFileError(f"TLS file {path} cannot be read as a key "
+                           f"({getattr(exc, 'strerror', None) or exc}; {_REMEDY})") from None
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise TLSFileError(f"{path} is not an EC key made by snail-client certs")
+    return key.sign(message, ec.ECDSA(hashes.SHA256()))
+
+
+def endorsed(cert_der: bytes, message: bytes, signature: bytes) -> bool:
+    """Whether the key of the certificate ``cert_der`` signed ``message`` (``endorse``)."""
+    try:
+        public = x509.load_der_x509_certificate(cert_der).public_key()
+        if not isinstance(public, ec.EllipticCurvePublicKey):
+            return False
+        public.verify(signature, message, ec.ECDSA(hashes.SHA256()))
+    except (ValueError, InvalidSignature, UnsupportedAlgorithm):
+        return False
+    return True
+
+
+def issued_by(cert_der: bytes, ca_pem: bytes) -> bool:
+    """Whether the CA certificate ``ca_pem`` issued (signed) the certificate ``cert_der``."""
+    try:
+        cert = x509.load_der_x509_certificate(cert_der)
+        cert.verify_directly_issued_by(x509.load_pem_x509_certificate(ca_pem))
+    except (ValueError, TypeError, InvalidSignature, UnsupportedAlgorithm):
+        return False
+    return True
