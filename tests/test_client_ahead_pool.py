@@ -31,7 +31,8 @@ class _Servers:
 
     async def prepare(self, circuit_id: str, with_fixed: bool) -> SimpleNamespace:
         fixed = self.pool.fixed(circuit_id) if with_fixed else None
-        session = SimpleNamespace(usable=True, owner_bits=0, frame=None, fixed=fixed)
+        session = SimpleNamespace(usable=True, refused=False, owner_bits=0, frame=None,
+                                  fixed=fixed)
         self.prepared.append(session)
         return session
 
@@ -112,3 +113,36 @@ def test_a_frame_of_another_circuit_cancels_the_sessions_kept_warm():
     servers, warm = asyncio.run(scenario())
     assert len(warm) == 3 and all(s in servers.cancelled for s in warm)
     assert not servers.queued() and len(servers.queued(OTHER)) == 3
+
+
+def test_a_reservation_the_servers_refused_shrinks_the_pool_until_it_has_been_quiet():
+    """A server with no room for a reservation (busy) or that gave one's place to a live
+    session (evicted): the pool holds one fewer at once, and grows back by one only after
+    REGROW_AFTER invocations without another refusal."""
+    from snail_client.ahead import REGROW_AFTER
+
+    async def scenario():
+        servers = _Servers()
+        fixed = _frame(True, False)
+        servers.pool.expect(CIRCUIT, 100, fixed)
+        await servers.settle()
+        assert len(servers.queued()) == 3
+        for session in servers.queued()[:2]:  # two answered busy / evicted
+            session.usable, session.refused = False, True
+        bits = fixed.bits | np.array([True, False, False, False])
+        depths = []
+        for _ in range(2 * REGROW_AFTER + 2):
+            session = (servers.pool.take(CIRCUIT, bits, None)
+                       or await servers.pool.in_flight(CIRCUIT, bits, None))
+            assert session is not None and not session.refused
+            servers.pool.used(CIRCUIT)
+            servers.pool.fill(CIRCUIT)
+            await servers.settle()
+            depths.append((servers.pool.depth, len(servers.queued())))
+        return depths
+
+    depths = asyncio.run(scenario())
+    assert depths[0] == (1, 1)  # 3 -> 2 -> 1: one fewer per refusal
+    assert all(d == (1, 1) for d in depths[:REGROW_AFTER - 2])
+    assert depths[REGROW_AFTER] == (2, 2)  # quiet for REGROW_AFTER: one more
+    assert depths[-1] == (3, 3)
