@@ -67,6 +67,10 @@ class ClientSide:
         if s is not None and s.client is not None:
             conn.post(messages.error(DUPLICATE_SESSION, "session id already in use", sid))
             return None
+        ended = self.ended.get(sid) if s is None else None
+        if ended is not None:  # its garbler half came first and the session has ended
+            conn.post(messages.error(ended.code, ended.message, sid))
+            return None
         try:
             if s is None:
                 s = self._open(msg, size, conn.peer_name)

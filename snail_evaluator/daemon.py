@@ -134,7 +134,7 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
         """A session that failed, or whose client half was refused: a garbler half that
         still comes for it is told at once (tables.py), not held for a client that
         never shows up."""
-        self.ended[sid] = exc
+        self.ended[sid] = ProtocolError(exc.code, exc.message)  # no traceback kept
         while len(self.ended) > ENDED_KEPT:
             self.ended.popitem(last=False)
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemons import daemons_with
-from test_service_e2e import hello, raw
+from test_service_e2e import hello, raw, read_msg
 
 from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import evaluate_bits, registry
@@ -104,19 +104,19 @@ def test_reservations_filling_the_cap_never_make_a_live_run_busy(services, rest)
         try:
             live = await b.invoke(CIRCUIT, rows[0])
             after = [await a.invoke(CIRCUIT, row) for row in rows[1:]]
+            counts = (await b.health("evaluator"))["sessions"]
         finally:
             await b.close()
             await a.close()
-        return health, live, b.retries, after
+        return health, live, b.retries, after, counts
 
-    health, live, retries, after = asyncio.run(scenario())
+    health, live, retries, after, counts = asyncio.run(scenario())
     assert health["sessions"]["active"] == 3 and health["sessions"]["reserved"] == 3
     np.testing.assert_array_equal(live.outputs, want[0])
     assert retries == 0 and "client_busy_wait_s" not in live.timing
     for inv, expected in zip(after, want[1:]):
         np.testing.assert_array_equal(inv.outputs, expected)
-    outcomes = [s["outcome"] for s in _sessions(services.evaluator.log)]
-    assert errors.EVICTED in outcomes and errors.BUSY not in outcomes
+    assert counts["evicted"] >= 1 and counts["busy"] == 0
     assert _at_rest(services) == rest
 
 
@@ -147,10 +147,14 @@ def test_sessions_cancelled_by_their_client_give_everything_back(services, rest)
     async def scenario():
         r = await _holding(services, 3)
         await r.close()  # cancels all three on both daemons
+        async with AsyncSecureRunner(services.garbler_addr, services.evaluator_addr,
+                                     services.tls_dir) as probe:
+            await asyncio.sleep(0.5)
+            return [(await probe.health(role))["sessions"] for role in ("garbler", "evaluator")]
 
-    asyncio.run(scenario())
+    for counts in asyncio.run(scenario()):
+        assert counts["active"] == 0 and counts["reserved"] == 0
     assert _at_rest(services) == rest
-    assert {s["outcome"] for s in _sessions(services.evaluator.log)[-3:]} == {errors.ABORTED}
 
 
 def test_a_killed_client_leaves_nothing_behind(services, rest):
@@ -192,6 +196,29 @@ def test_a_session_that_times_out_gives_everything_back(services, rest):
     assert _at_rest(services) == rest
     line = next(s for s in _sessions(services.evaluator.log) if s["sid"] == sid.hex())
     assert line["outcome"] == errors.TIMEOUT
+
+
+def test_a_client_half_of_a_session_that_already_ended_is_told_at_once(services, rest):
+    """The garbler's half came first and its session ended (here: no client half within
+    --session-timeout; an eviction alike): the client half that comes after is told why
+    at once, not held waiting for a garbler half that has come and gone."""
+    sid = os.urandom(16)
+    start = dict(sid=sid, circuit=CIRCUIT, hash=registry.compiled(CIRCUIT)[0].content_hash())
+    with raw(services.evaluator_addr, services.tls_dir, "garbler") as garbler:
+        hello(garbler, "garbler")
+        garbler.sendall(encode_bytes(messages.make("session_start", ahead=True, **start)))
+        verdict = read_msg(garbler)  # after --session-timeout (3 s)
+        assert verdict["t"] == "error" and verdict["sid"] == sid
+        with raw(services.evaluator_addr, services.tls_dir) as client:
+            hello(client)
+            t0 = time.monotonic()
+            client.sendall(encode_bytes(messages.make("session_start", **start)))
+            answer = read_msg(client)
+            waited = time.monotonic() - t0
+    assert answer["t"] == "error" and answer["code"] == errors.TIMEOUT
+    assert "the client's input labels did not arrive" in answer["message"]
+    assert waited < 1.5
+    assert _at_rest(services) == rest
 
 
 def test_a_connection_cancelled_while_it_opens_is_closed(tmp_path):

@@ -33,8 +33,10 @@ from snail_common.gc.stream import BLOCK_GATES
 from . import messages
 from .conn import SOFTWARE, Connection
 from .errors import (
+    ABORTED,
     CIRCUIT_MISMATCH,
     DRAINING,
+    EVICTED,
     TIMEOUT,
     TOO_LARGE,
     UNEXPECTED,
@@ -52,6 +54,9 @@ from .options import Options
 from .slots import Slot, Slots
 
 T = TypeVar("T")
+# session outcomes that are the service working as meant: logged at info (a cancel by its
+# client, a reservation giving its place to a live session), every other at warning
+EXPECTED = frozenset({OK, ABORTED, EVICTED})
 BODIES_IDLE_S = 1.0  # recycled table frames are dropped once the daemon is idle this long
 
 
@@ -239,7 +244,7 @@ class Daemon(Listener):
         fields.update(more)
         if timeline:
             fields["timeline"] = {k: round(v, 6) for k, v in timeline.items()}
-        event(self.log, "session", logging.INFO if outcome == OK else logging.WARNING,
+        event(self.log, "session", logging.INFO if outcome in EXPECTED else logging.WARNING,
               **fields)
 
 
