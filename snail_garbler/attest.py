@@ -64,14 +64,17 @@ class _Commit:
     def __init__(self, req: dict[str, Any], key: Ed25519PrivateKey) -> None:
         self.req, self._key = req, key
         self.digest = TableDigest()
-        self.garbler: Any = None  # whose zero-labels go with the stream sent
+        # the output zero-labels of the garbling actually streamed, once it is all sent:
+        # the labels, not that garbling (a commitment is kept per garbler in a weak
+        # dictionary, and a value that held its key would keep both alive for good)
+        self.zero: np.ndarray | None = None
         self.statement: Statement | None = None
         self.signature = b""
         self.cpu_s = {"digest_s": 0.0, "sign_s": 0.0}
 
     def stream(self, garbler: Any) -> Iterator[bytes | memoryview]:
         """Runs in the garbling threads, frame by frame."""
-        frames, self.garbler = cheats.frames(garbler, self.req)
+        frames, streamed = cheats.frames(garbler, self.req)
         block = None
         for frame in frames:
             t0 = time.thread_time()
@@ -80,6 +83,7 @@ class _Commit:
             self.digest.update(frame)
             self.cpu_s["digest_s"] += time.thread_time() - t0
             yield frame
+        self.zero = streamed.output_zero_labels
         t0 = time.thread_time()
         req = self.req
         self.statement = Statement(req["sid"], req["circuit"], req["hash"],
@@ -117,7 +121,7 @@ class Attestor:
         ``outputs`` statement over those labels); ``timing`` gains this session's
         digest and signing CPU seconds."""
         commit = self._commits[garbler]
-        zero = cheats.zero_labels(commit.garbler.output_zero_labels, commit.req)
+        zero = cheats.zero_labels(commit.zero, commit.req)
         t0 = time.thread_time()
         signature = commit.statement.with_outputs(zero).sign(self.key)
         commit.cpu_s["sign_s"] += time.thread_time() - t0

@@ -215,3 +215,32 @@ def test_a_sign_off_read_ahead_while_buffering_is_kept():
 def test_output_digest_is_over_the_labels_in_wire_order():
     labels = np.arange(8, dtype=np.uint64).reshape(4, 2)
     assert outputs_digest(labels) != outputs_digest(labels[::-1])
+
+
+def test_a_commitment_does_not_keep_its_garbling_alive():
+    """The garbler keeps each session's commitment while its garbling lives (a weak
+    dictionary): once the session is over, both go. A commitment that held its garbling
+    (for the zero-labels) kept every session's labels for good: the garbler's memory
+    grew by hundreds of MB over a soak."""
+    import gc
+    import weakref
+
+    from snail_common.gc import Garbler
+    from snail_common.gc.labels import labels_to_bytes
+    from snail_garbler.attest import Attestor
+
+    circuit, schedule = registry.compiled(CIRCUIT)
+    attestor = Attestor(None)
+    alive = []
+    for _ in range(3):
+        garbler = Garbler(schedule, fresh_seed(), labels_to_bytes(fresh_delta()), bytes(16))
+        req = {"sid": os.urandom(16), "circuit": CIRCUIT, "hash": circuit.content_hash()}
+        for _frame in attestor.frames(garbler, req):
+            pass
+        attestor.end(garbler)
+        zero, _ = attestor.reply(garbler, {}, "robot")
+        np.testing.assert_array_equal(zero, garbler.output_zero_labels)
+        alive.append(weakref.ref(garbler))
+        del garbler
+    gc.collect()
+    assert not any(ref() is not None for ref in alive)
