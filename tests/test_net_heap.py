@@ -32,3 +32,17 @@ def test_trimming_returns_freed_heap_pages():
 def test_trimming_is_rate_limited():
     trimmer = HeapTrimmer(every_s=3600)
     assert not trimmer.session_ended()  # the last trim (its creation) is recent
+
+
+def test_a_daemon_process_can_keep_one_arena():
+    """glibc (Linux): M_ARENA_MAX is accepted, so worker threads allocate from the arena
+    that malloc_trim empties; elsewhere nothing is changed and it says so."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", "from snail_common.net.heap import one_arena;"
+                          "print(one_arena())"], capture_output=True, text=True, check=True)
+    import platform
+
+    glibc = platform.libc_ver()[0] == "glibc"
+    assert out.stdout.strip() == str(glibc)

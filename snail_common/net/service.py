@@ -46,7 +46,7 @@ from .errors import (
     RemoteError,
 )
 from .frames import MAX_FRAME
-from .heap import HeapTrimmer
+from .heap import HeapTrimmer, one_arena
 from .listener import Listener
 from .logs import event
 from .metrics import OK
@@ -69,6 +69,7 @@ class Daemon(Listener):
 
     def __init__(self, options: Options, logger: logging.Logger) -> None:
         super().__init__(options, logger)
+        one_arena()  # before any worker thread: their memory is trimmed with the rest
         self.pool = ThreadPoolExecutor(options.workers, thread_name_prefix=self.role)
         self._planned: dict[str, int] = {}  # circuit id -> id() of the planned schedule
         self.slots = Slots(self.role, options.max_sessions, options.max_sessions_per_peer,
