@@ -1,4 +1,5 @@
-"""``snail-client localize`` and ``snail-client track`` (contract: shared/FORMATS.md).
+"""``snail-client localize`` (contract: shared/FORMATS.md) and what ``track``
+(track_cmd.py) shares with it: the options, the output, the exit statuses.
 
 Exit status: 0 success (not converging is reported, not a failure), 1 the run failed
 (network, server, integrity), 2 bad usage or bad input, with one line naming the field.
@@ -15,13 +16,13 @@ from pathlib import Path
 import click
 import numpy as np
 
-from snail_common.loc.problem import PoseVectors, ProblemError
+from snail_common.loc.problem import ProblemError
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
 from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
 from snail_common.net.tls import TLSFileError
 
 from . import owner_localize
-from .inputs.options import load_frame, load_frames, localize_inputs, track_inputs
+from .inputs.options import load_frame, localize_inputs
 from .links import DEFAULT_LINK_TIMEOUT, ServiceError
 from .localize import BACKENDS, Options, backend_for, localize
 from .progress import bar
@@ -252,67 +253,3 @@ def localize_cmd(input_path: str | None, as_json: bool, output: str | None,
     _write(output, [record], single=True)
     if record["status"] != "converged":
         _fail(3, _untrusted(record))
-
-
-@click.command("track")
-@track_inputs
-@click.option("--fail-fast", is_flag=True,
-              help="Stop at the first frame that fails or is not trusted.")
-@_options
-def track_cmd(input_path: str | None, as_json: bool, output: str | None, fail_fast: bool,
-              **kw) -> None:
-    """Localize a sequence, each frame starting from the previous trusted pose.
-
-    A frame that cannot be read or solved is named on stderr and recorded in the output
-    with its failure; the others go on (unless --fail-fast), and --output always gets
-    what was computed. Exit status: 0 every frame trusted; 1 a secure run failed; 2 the
-    sequence cannot be read; 3 some frame failed or is not trusted."""
-    options = _make_options(kw)
-    try:
-        frames = load_frames(input_path, kw)
-    except ProblemError as e:
-        _fail(2, str(e))
-    records: list[dict] = []
-    worst = 0
-    try:
-        with backend_for(options) as backend, bar(
-                len(frames), "frames", _verbosity().get("quiet", False), "frame") as frames_bar:
-            previous: PoseVectors | None = None
-            for index, (name, problem) in enumerate(frames):
-                frames_bar.update(index - frames_bar.n)
-                try:
-                    if isinstance(problem, ProblemError):
-                        raise problem
-                    record = localize(problem, options, backend, initial=previous)
-                except (ProblemError, ValueError, ServiceError) as e:
-                    worst = _worse(worst, 1 if isinstance(e, ServiceError) else 3)
-                    click.echo(f"snail-client: frame {index} ({name}): {e}", err=True)
-                    records.append({"frame": index, "input": name, "failure": str(e)})
-                    if fail_fast:
-                        break
-                    continue
-                record.update(frame=index, input=name)
-                records.append(record)
-                _show(record, as_json)
-                if record["status"] == "converged":
-                    previous = PoseVectors(np.array(record["rvec"]), np.array(record["tvec"]))
-                else:
-                    worst = _worse(worst, 3)
-                    click.echo(f"snail-client: frame {index} ({name}): "
-                               f"{_untrusted(record)}", err=True)
-                    if fail_fast:
-                        break
-    except ServiceError as e:  # connecting or closing, outside any frame
-        worst = 1
-        click.echo(f"snail-client: {e}", err=True)
-    except TLSFileError as e:
-        worst = 2
-        click.echo(f"snail-client: --tls-dir: {e}", err=True)
-    except KeyboardInterrupt:
-        worst = 130
-        click.echo(f"snail-client: interrupted after {len(records)} frames (--output keeps "
-                   f"them)", err=True)
-    finally:
-        _write(output, records, single=False)
-    if worst:
-        sys.exit(worst)
