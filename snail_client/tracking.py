@@ -209,8 +209,7 @@ class Tracker:
         return item, plan, handed_in, done
 
     def _choose_in_flight(self) -> None:
-        """--in-flight, or from the first frame's runs: one more frame in flight for each
-        run's worth of compute its client round trip (wall time less evaluation) takes."""
+        """--in-flight, or from the first frame's runs (``in_flight_for``)."""
         if self.options.in_flight is not None or self._threaded is None:
             self.in_flight = self.options.in_flight or 1
         else:
@@ -296,15 +295,29 @@ class Tracker:
 
 def in_flight_for(runs: list) -> int:
     """Frames in flight that keep the servers busy through the client's round trip: 1 +
-    the median round trip (a run's wall time less its evaluation and its wait for
-    tables) over the median evaluation."""
-    walls = [r.wall_s for r in runs]
-    compute = [r.timing.get("evaluator_evaluate_s", 0.0) for r in runs]
-    if not walls or not compute or not max(compute) > 0:
+    the median round trip (a run's wall time less its evaluation) over the median
+    servers' part (the longest of garbling, evaluation and the tables' time on the
+    server link at the rate the garbler measured last: its first estimates run low).
+    That part is what a stream of runs is paced by at best; more frames in flight would
+    only queue, each started from an older pose. On loopback: 1; under the lab's region
+    profile (40 ms client round trip, 37 ms of tables a run at n = 6): 2."""
+    if not runs:
         return 1
-    waits = [r.timing.get("evaluator_wait_s", 0.0) for r in runs]
-    trip = float(np.median(np.subtract(np.subtract(walls, compute), waits)))
-    return 1 + max(0, math.floor(trip / float(np.median(compute))))
+    link = runs[-1].timing.get("garbler_link_mbit", 0.0)
+    served = [_served(r, link) for r in runs]
+    if not max(served) > 0:
+        return 1
+    trip = float(np.median([r.wall_s - r.timing.get("evaluator_evaluate_s", 0.0)
+                            for r in runs]))
+    return 1 + max(0, math.floor(trip / float(np.median(served))))
+
+
+def _served(run: Any, link_mbit: float) -> float:
+    """The servers' part of one run: garbling, evaluation or the tables on the link."""
+    t = run.timing
+    tables = (run.traffic.get("garbler_to_evaluator", 0) * 8 / (link_mbit * 1e6)
+              if link_mbit else 0.0)
+    return max(t.get("evaluator_evaluate_s", 0.0), t.get("garbler_garble_s", 0.0), tables)
 
 
 def summary(records: list[dict], wall_s: float, cpu_s: float, tracker: Tracker) -> dict:
