@@ -56,7 +56,7 @@ def _json(out: subprocess.CompletedProcess | object, key: str) -> dict:
 # every subcommand and the test that runs it below (a new command must add one)
 COVERED = {
     "bench": {"accuracy", "bristol", "circuit", "compiler", "engine", "fuzz", "netem", "ops",
-              "paper", "service", "soak"},
+              "paper", "service", "soak", "track"},
     "demo": {"accuracy", "turbo"},
 }
 
@@ -115,6 +115,13 @@ def test_bench_service():
                "--json")
     assert out.returncode == 0, out.stderr
     assert set(_json(out, "service")) == {"nx-sil-n4"}
+
+
+def test_bench_track():
+    out = _run("snail_bench.cli", "-q", "track", "--points", "4", "--frames", "4", "--json")
+    assert out.returncode == 0, out.stderr
+    entry = _json(out, "track")["nx-sil-n4"]
+    assert entry["frames"] == 4 and entry["setting"] == "offload"
 
 
 def test_bench_soak():
