@@ -52,7 +52,7 @@ def _options(fn: Callable) -> Callable:
         click.option("--arith", type=click.Choice(["fixed", "float"]),
                      help="Per-point arithmetic of a --mode sil circuit. fixed "
                           "(default): the Jacobian and the sums over points in integers, "
-                          "residuals and cost in float32 (0.25 M AND gates at n = 6 with "
+                          "residuals and cost in float32 (0.18 M AND gates at n = 6 with "
                           "the client's solve); float: the same sums in narrow floats "
                           "(0.36 M). --solver svd is float only."),
         click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt",

@@ -48,12 +48,18 @@ def _tracking_options(fn):
                           "runs), every frame gets exactly K secure runs, each one "
                           "Gauss-Newton or LM step from the prediction (the last trusted "
                           "pose): the servers see the same count whatever the data. 0: pad "
-                          "every frame to --min-invocations, as before."),
+                          "every frame to --min-invocations, as before. At n = 6 one run a "
+                          "frame followed a 30 frames/s hand-held walk at 83-99 frames/s on "
+                          "a shared 2-core machine running both servers (snail-bench track, "
+                          "2026-12-04); 2 runs land closer to the converged pose."),
         click.option("--in-flight", type=click.IntRange(1, MAX_IN_FLIGHT), metavar="D",
                      help="Frames whose runs may overlap: a frame starts from the pose of "
                           "the frame D before it, so a slow client link costs throughput, "
-                          "not frames. Default: from the first frame's runs (1 + the "
-                          "client round trip over a run's evaluation; 1 on loopback)."),
+                          "not frames. Default: from the first frame's runs, 1 + a run's "
+                          "client round trip over the servers' part of it (garbling, "
+                          "evaluation or the tables on the server link): 1 on loopback, 1-2 "
+                          "under the network lab's region profile (17.6-24.4 frames/s at "
+                          "n = 6 there)."),
         click.option("--rate", type=click.FloatRange(0, min_open=True), metavar="R",
                      help="Secure runs at R per second whatever the frames: a slot no frame "
                           "takes runs padding the servers cannot tell from a frame, so frame "
