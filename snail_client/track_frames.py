@@ -109,7 +109,3 @@ class MapFrames:
         improved = math.isfinite(out["rms_px"]) and bool(np.isfinite(pose.tvec).all())
         return Solved(out, self.spec(frame), pose, improved, frame)
 
-
-def frame_kind(built: Any) -> str:
-    """What a built frame is, for messages."""
-    return "snail-frame/1" if isinstance(built, Frame) else "snail-problem/1"

@@ -5,12 +5,17 @@ records and summary; the map-owner setting on the same schedule."""
 
 from __future__ import annotations
 
+import itertools
 import json
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from daemons import daemons_with, evaluator_runs
+from daemons import daemons_with, evaluator_runs, sigint_default
 
 from snail_client.api import Localizer
 from snail_client.cli import main as client
@@ -160,3 +165,48 @@ def test_the_map_owner_setting_tracks_on_the_same_schedule(walk, tmp_path):
     assert [(r["rvec"], r["tvec"]) for r in garbled] == [
         (r["rvec"], r["tvec"]) for r in results["cleartext"]]
 
+
+
+def test_a_constant_rate_runs_on_through_a_pause_in_the_frames(services, walk):
+    """--rate: the servers see runs at the rate while the camera pauses (padding), so
+    the gap between runs never shows the pause; without it, the pause shows."""
+    _, frames = walk
+    pause_s = 0.6
+
+    def paused(rate: float | None) -> float:
+        def camera():
+            for k, frame in enumerate(frames[:GAP]):
+                if k == 3:
+                    time.sleep(pause_s)
+                yield frame
+
+        before = len(evaluator_runs(services))
+        remote = {"garbler": services.garbler_addr, "evaluator": services.evaluator_addr,
+                  "tls_dir": str(services.tls_dir)}
+        with Localizer(camera=_camera(frames[0]), rate=rate, **remote) as loc:
+            assert len(list(loc.track(camera()))) == GAP
+        starts = sorted(run["timeline"]["labels"]
+                        for run in evaluator_runs(services)[before:])
+        return max(b - a for a, b in itertools.pairwise(starts))
+
+    assert paused(None) >= pause_s
+    assert paused(40.0) < pause_s / 3  # ticks every 25 ms, padding when no frame waits
+
+
+def test_ctrl_c_in_a_track_is_one_line_exit_130_and_keeps_the_frames(tmp_path):
+    long = handheld(np.random.default_rng(9), 6, 3000)
+    seq = tmp_path / "long.jsonl"
+    seq.write_text("".join(json.dumps(problem_to_json(p)) + "\n" for p in long.problems))
+    out_file = tmp_path / "out.json"
+    proc = subprocess.Popen([sys.executable, "-m", "snail_client", "track", "--input",
+                             str(seq), "--output", str(out_file), "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=sigint_default)
+    time.sleep(8)  # the embedded servers are up and frames are under way
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith("snail-client: interrupted after ")
+    written = json.loads(out_file.read_text())
+    assert 0 < len(written) == len(out.splitlines()) < 3000

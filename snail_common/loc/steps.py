@@ -22,7 +22,6 @@ reprojection RMS); the map-owner device knows the cost at the last pose a run ev
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,8 +120,3 @@ def _reject(held: _Held, lm: bool) -> None:
         held.lam, held.nu = min(held.lam * held.nu, LAMBDA_MAX), 2 * held.nu
         held.step = damped_step(held.model.hess, held.model.grad, held.lam)
 
-
-def finite_pose(pose: Pose) -> bool:
-    """Whether a pose is usable as a next start (a broken step gives NaN)."""
-    return bool(np.isfinite(pose.R).all() and np.isfinite(pose.t).all()
-                and math.isfinite(float(np.linalg.det(pose.R))))
