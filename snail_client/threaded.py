@@ -38,6 +38,8 @@ from .blocking import SecureRunner
 from .secure import AsyncSecureRunner
 from .sessions import FixedInputs, Invocation
 
+SEEN_RUNS = 64
+
 
 class Gate:
     """One slot of the pacer: each run in it waits for a tick. ``limit`` runs (None: until
@@ -157,7 +159,9 @@ class ThreadedRunner:
                  runs_per_slot: int = 1) -> None:
         self.blocking, self.loop, self.secure = runner, runner.loop, runner.async_runner
         self.pacer = Pacer(self.secure, rate, runs_per_slot) if rate else None
-        self.invocations_seen: list[Invocation] = []
+        # the last runs' figures (what the tracker sizes its frames in flight from);
+        # bounded: a stream of an hour makes hundreds of thousands
+        self.invocations_seen: deque[Invocation] = deque(maxlen=SEEN_RUNS)
         self._thread: threading.Thread | None = None
         self._calls: set[concurrent.futures.Future] = set()  # submitted, not yet done
 

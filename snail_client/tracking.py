@@ -213,7 +213,7 @@ class Tracker:
         if self.options.in_flight is not None or self._threaded is None:
             self.in_flight = self.options.in_flight or 1
         else:
-            self.in_flight = in_flight_for(self._threaded.invocations_seen)
+            self.in_flight = in_flight_for(list(self._threaded.invocations_seen))
         self.in_flight = max(1, min(self.in_flight, self.frames.max_in_flight))
 
     def _backend_for(self, gate: Gate | None, alone: bool) -> Backend:
