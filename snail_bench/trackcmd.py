@@ -136,7 +136,7 @@ def _line(name: str, e: dict) -> str:
     return (f"{name}: {e['frames']} frames of {e['sequence']} ({e['setting']}), "
             f"{e['fps']:.1f} frames/s ({e['fps_after_first'] or 0:.1f} after the first), "
             f"latency p50 {1000 * lat['p50']:.1f} ms p95 {1000 * lat['p95']:.1f} ms max "
-            f"{1000 * lat['max']:.1f} ms; {e['runs_per_frame']} runs a frame, "
+            f"{1000 * lat['max']:.1f} ms; {e['runs_per_frame']} run(s) a frame, "
             f"{e['in_flight']} in flight, dropped {e['dropped']}, lost {e['lost']}\n"
             f"  against OpenCV: RMS ratio median {ratio.get('median', math.nan):.4f} max "
             f"{ratio.get('max', math.nan):.4f}, within {100 * (e['within'] or 0):.1f} % "

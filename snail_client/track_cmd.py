@@ -207,13 +207,17 @@ def _report(out: dict, as_json: bool, quiet: bool) -> int:
     else:
         click.echo(f"frame {out['frame']}: rvec {np.round(out['rvec'], 6).tolist()}  tvec "
                    f"{np.round(out['tvec'], 6).tolist()}  {out['status']}, rms "
-                   f"{out['rms_px']:.3f} px, {out['runs']} runs, "
+                   f"{out['rms_px']:.3f} px, {_runs(out['runs'])}, "
                    f"{1000 * out['latency_s']:.1f} ms, {out['track_status']}"
                    + (", revealed" if out["revealed"] else ""))
     if out["status"] not in TRUSTED:
         click.echo(f"snail-client: {where}{_untrusted(out)}", err=True)
         return 3
     return 0
+
+
+def _runs(count: int) -> str:
+    return f"{count} run" + ("" if count == 1 else "s")
 
 
 def _summary_text(s: dict) -> str:
