@@ -2,7 +2,7 @@
 
 The group and its flags; each subcommand lives in a module by job: ``circuitcmd.py``
 (bristol, compiler, ops, circuit, engine), ``servicecmd.py`` (service), ``checkcmd.py``
-(soak, accuracy, fuzz) and ``netcmd.py`` (netem, paper)."""
+(soak, accuracy, fuzz), ``netcmd.py`` (netem, paper) and ``trackcmd.py`` (track)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from .checkcmd import accuracy, fuzz_cmd, soak
 from .circuitcmd import bristol, circuit, compiler, engine, ops
 from .netcmd import netem, paper
 from .servicecmd import service
+from .trackcmd import track
 
 
 @click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -33,7 +34,7 @@ def main(ctx: click.Context, verbose: bool, quiet: bool) -> None:
 
 
 for command in (netem, paper, bristol, compiler, ops, circuit, engine, service, soak, accuracy,
-                fuzz_cmd, audits, verify_evidence):
+                fuzz_cmd, audits, verify_evidence, track):
     main.add_command(command)
 
 

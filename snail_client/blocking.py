@@ -127,6 +127,16 @@ class SecureRunner:
         return self._runner.audits
 
     @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The runner's event loop (threaded.py runs it in a thread of its own)."""
+        return self._loop
+
+    @property
+    def async_runner(self) -> AsyncSecureRunner:
+        """The asyncio runner this one wraps, for coroutines run on ``loop``."""
+        return self._runner
+
+    @property
     def scheme(self) -> str:
         """The garbling scheme of this runner's sessions."""
         return self._runner.scheme

@@ -63,7 +63,8 @@ def certs(directory: Path, hosts: tuple[str, ...], days: int,
 
 
 from .health import health_cmd  # noqa: E402  (commands of the group above)
-from .localize_cmd import localize_cmd, track_cmd  # noqa: E402
+from .localize_cmd import localize_cmd  # noqa: E402
+from .track_cmd import track_cmd  # noqa: E402
 
 main.add_command(localize_cmd)
 main.add_command(track_cmd)

@@ -24,11 +24,12 @@ from snail_common.loc.backends import (
     interface,
     shared_bits,
 )
-from snail_common.loc.pipeline import Localized
+from snail_common.loc.pipeline import Localized, refine_fixed
 from snail_common.loc.pipeline import Options as PipelineOptions
 from snail_common.loc.pipeline import localize as run_pipeline
 from snail_common.loc.problem import PoseVectors, Problem
 from snail_common.loc.reference import reprojection_rms
+from snail_common.loc.schedule import MOTION_MODELS, ON_LOST
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX, assess, degenerate, pose_error
 from snail_common.net.linkrates import AUTO
 from snail_common.pnp.spec import Spec
@@ -41,6 +42,7 @@ from .secure import DEFAULT_BUSY_WAIT
 from .sessions import LINKS, FixedInputs
 
 BACKENDS = ("garbled", "cleartext", "float64")
+MAX_IN_FLIGHT = 16
 RESULT_FORMAT = "snail-result/1"
 
 
@@ -59,6 +61,12 @@ class Options(PipelineOptions):
     cert_name: str = "client"
     audit_rate: float = DEFAULT_AUDIT_RATE  # share of runs the client garbles again
     evidence: str | None = None  # folder for the evidence of a caught garbler
+    # a stream (track, Localizer.track): the fixed schedule (snail_common.loc.schedule)
+    runs_per_frame: int = 1  # after the first frame; 0: every frame padded, as before
+    in_flight: int | None = None  # frames whose runs overlap; None: from the round trip
+    rate: float | None = None  # secure runs per second whatever the frames
+    on_lost: str = "wait"
+    motion_model: str = "none"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -68,6 +76,20 @@ class Options(PipelineOptions):
             raise ValueError(f"--audit-rate: expected a share in [0, 1], got "
                              f"{self.audit_rate!r}")
         check_addresses(self.garbler, self.evaluator, self.tls_dir)
+        if self.runs_per_frame < 0:
+            raise ValueError("--runs-per-frame: must not be negative")
+        if self.in_flight is not None and not 1 <= self.in_flight <= MAX_IN_FLIGHT:
+            raise ValueError(f"--in-flight: 1 to {MAX_IN_FLIGHT}, got {self.in_flight}")
+        if self.rate is not None and not (self.rate > 0 and self.backend == "garbled"):
+            raise ValueError("--rate: a rate above 0, with --backend garbled (there are "
+                             "no servers to hide the frames' timing from otherwise)")
+        if self.on_lost not in ON_LOST:
+            raise ValueError(f"--on-lost: expected one of {ON_LOST}, got {self.on_lost!r}")
+        if self.motion_model not in MOTION_MODELS:
+            raise ValueError(f"--motion-model: expected one of {MOTION_MODELS}, got "
+                             f"{self.motion_model!r}")
+        if self.rate is not None and not self.runs_per_frame:
+            raise ValueError("--rate: runs at a constant rate need --runs-per-frame >= 1")
 
 
 class GarbledBackend(CircuitBackend):
@@ -106,6 +128,14 @@ class GarbledBackend(CircuitBackend):
                 noise[fixed.mask] = fixed.bits[fixed.mask]
             self.invocations += 1
             self._secure_run(spec.registry_id, noise)
+
+    def pad_frame(self, spec: Spec, runs: int) -> None:
+        """A frame of a stream with nothing to run (no usable points): the last frame's
+        inputs declared again, so their labels reach the evaluator as a frame's do, and
+        ``runs`` padding runs: the servers see a frame like any other."""
+        fixed = self.secure.fixed(spec.registry_id)
+        self.secure.expect(spec.registry_id, runs, fixed)
+        self.pad(spec, self.invocations + runs)
 
     def traffic(self) -> dict[str, int]:
         return dict(self.secure.totals)
@@ -173,17 +203,40 @@ def failure_record(exc: IntegrityFailure, options: Options) -> dict:
             "algorithm": options.algorithm, "mode": options.mode}
 
 
+def track_frame(problem: Problem, options: Options, backend: Backend, start: PoseVectors,
+                runs: int) -> dict:
+    """A frame of the tracking schedule: exactly ``runs`` secure runs from ``start`` (a
+    prediction), each one GN or LM step (pipeline.refine_fixed). Its record's status is
+    ``tracked`` when the answer passes every check (never ``converged``: the answer's own
+    cost was not evaluated), else why not; a degenerate frame makes no run here."""
+    reason = degenerate(problem)
+    if reason is not None:
+        return _degenerate_record(problem, options, start, reason)
+    before, schemes = backend.traffic(), Counter(getattr(backend, "schemes", {}))
+    retried = _retries(backend)
+    result = refine_fixed(problem, options, backend, start, runs)
+    after = backend.traffic()
+    schemes = Counter(getattr(backend, "schemes", {})) - schemes
+    out = record(result, options, {link: after.get(link, 0) - before.get(link, 0)
+                                   for link in LINKS}, problem, schemes, tracked=True)
+    if isinstance(backend, GarbledBackend):
+        out["retries"] = _retries(backend) - retried
+    return out
+
+
 def _retries(backend: Backend) -> int:
     """Secure runs the garbled backend ran again on another replica (0 for the others)."""
     return backend.secure.retries if isinstance(backend, GarbledBackend) else 0
 
 
 def record(result: Localized, options: Options, traffic: dict[str, int],
-           problem: Problem, schemes: Counter[str] | None = None) -> dict:
+           problem: Problem, schemes: Counter[str] | None = None,
+           tracked: bool = False) -> dict:
     """The snail-result/1 record of a localized frame; ``schemes``: its sessions per
-    garbling scheme (with ``--scheme auto`` each session's is picked on its own)."""
+    garbling scheme (with ``--scheme auto`` each session's is picked on its own);
+    ``tracked``: a frame of the fixed schedule (status ``tracked``, not ``converged``)."""
     status, warnings = assess(problem, result.rvec, result.tvec, result.converged,
-                              result.rms_px, options.max_rms_px)
+                              result.rms_px, options.max_rms_px, tracked)
     out = {
         "format": RESULT_FORMAT,
         "rvec": [float(x) for x in result.rvec], "tvec": [float(x) for x in result.tvec],

@@ -1,4 +1,5 @@
-"""``snail-client localize`` and ``snail-client track`` (contract: shared/FORMATS.md).
+"""``snail-client localize`` (contract: shared/FORMATS.md) and what ``track``
+(track_cmd.py) shares with it: the options, the output, the exit statuses.
 
 Exit status: 0 success (not converging is reported, not a failure), 1 the run failed
 (network, server, integrity: then the record's ``error`` names the party to blame,
@@ -16,14 +17,14 @@ from pathlib import Path
 import click
 import numpy as np
 
-from snail_common.loc.problem import PoseVectors, ProblemError
+from snail_common.loc.problem import ProblemError
 from snail_common.loc.trust import DEFAULT_MAX_RMS_PX
 from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
 from snail_common.net.tls import TLSFileError
 
 from . import owner_localize
 from .audit import DEFAULT_AUDIT_RATE, IntegrityFailure
-from .inputs.options import load_frame, load_frames, localize_inputs, track_inputs
+from .inputs.options import load_frame, localize_inputs
 from .links import DEFAULT_LINK_TIMEOUT, ServiceError
 from .localize import BACKENDS, Options, backend_for, failure_record, localize
 from .progress import bar
@@ -53,7 +54,7 @@ def _options(fn: Callable) -> Callable:
         click.option("--arith", type=click.Choice(["fixed", "float"]),
                      help="Per-point arithmetic of a --mode sil circuit. fixed "
                           "(default): the Jacobian and the sums over points in integers, "
-                          "residuals and cost in float32 (0.25 M AND gates at n = 6 with "
+                          "residuals and cost in float32 (0.18 M AND gates at n = 6 with "
                           "the client's solve); float: the same sums in narrow floats "
                           "(0.36 M). --solver svd is float only."),
         click.option("--solver", type=click.Choice(["ldlt", "svd"]), default="ldlt",
@@ -270,72 +271,3 @@ def localize_cmd(input_path: str | None, as_json: bool, output: str | None,
     _write(output, [record], single=True)
     if record["status"] != "converged":
         _fail(3, _untrusted(record))
-
-
-@click.command("track")
-@track_inputs
-@click.option("--fail-fast", is_flag=True,
-              help="Stop at the first frame that fails or is not trusted.")
-@_options
-def track_cmd(input_path: str | None, as_json: bool, output: str | None, fail_fast: bool,
-              **kw) -> None:
-    """Localize a sequence, each frame starting from the previous trusted pose.
-
-    A frame that cannot be read or solved is named on stderr and recorded in the output
-    with its failure; the others go on (unless --fail-fast), and --output always gets
-    what was computed. Exit status: 0 every frame trusted; 1 a secure run failed; 2 the
-    sequence cannot be read; 3 some frame failed or is not trusted."""
-    options = _make_options(kw)
-    try:
-        frames = load_frames(input_path, kw)
-    except ProblemError as e:
-        _fail(2, str(e))
-    records: list[dict] = []
-    worst = 0
-    try:
-        with backend_for(options) as backend, bar(
-                len(frames), "frames", _verbosity().get("quiet", False), "frame") as frames_bar:
-            previous: PoseVectors | None = None
-            for index, (name, problem) in enumerate(frames):
-                frames_bar.update(index - frames_bar.n)
-                try:
-                    if isinstance(problem, ProblemError):
-                        raise problem
-                    record = localize(problem, options, backend, initial=previous)
-                except (ProblemError, ValueError, ServiceError) as e:
-                    worst = _worse(worst, 1 if isinstance(e, ServiceError) else 3)
-                    click.echo(f"snail-client: frame {index} ({name}): {e}", err=True)
-                    failed = {"frame": index, "input": name, "failure": str(e)}
-                    if isinstance(e, IntegrityFailure):
-                        failed.update(failure_record(e, options))
-                        if as_json:
-                            click.echo(json.dumps(failed))
-                    records.append(failed)
-                    if fail_fast:
-                        break
-                    continue
-                record.update(frame=index, input=name)
-                records.append(record)
-                _show(record, as_json)
-                if record["status"] == "converged":
-                    previous = PoseVectors(np.array(record["rvec"]), np.array(record["tvec"]))
-                else:
-                    worst = _worse(worst, 3)
-                    click.echo(f"snail-client: frame {index} ({name}): "
-                               f"{_untrusted(record)}", err=True)
-                    if fail_fast:
-                        break
-    except ServiceError as e:  # connecting or closing, outside any frame
-        worst = 1
-        click.echo(f"snail-client: {e}", err=True)
-    except TLSFileError as e:
-        worst = 2
-        click.echo(f"snail-client: --tls-dir: {e}", err=True)
-    except KeyboardInterrupt:
-        worst = 130
-        click.echo(f"snail-client: interrupted after {len(records)} frames (--output keeps "
-                   f"them)", err=True)
-    finally:
-        _write(output, records, single=False)
-    if worst:
-        sys.exit(worst)

@@ -21,11 +21,11 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from snail_common.loc.backends import CircuitBackend, Float64Backend, interface
+from snail_common.loc.backends import Backend, CircuitBackend, Float64Backend, interface
 from snail_common.loc.mapfile import Frame, load_frame, load_map
 from snail_common.loc.owner import localize_known, localize_shared, owner_values
 from snail_common.loc.pipeline import Localized
-from snail_common.loc.problem import ProblemError
+from snail_common.loc.problem import PoseVectors, ProblemError
 
 from .audit import IntegrityFailure
 from .embedded import connected, start_daemon
@@ -59,14 +59,28 @@ def localize_frame(path: str, options: Options, map_owner: str | None,
         frame = load_frame(path)
     except (ProblemError, ValueError) as exc:
         raise ProblemError(f"{path}: {exc}") from None
+    with session(options, map_owner, map_path) as (backend, link, known):
+        if link is None:
+            published, values = known
+            return record(localize_known(frame, published, values, options, backend),
+                          options, dict.fromkeys((*LINKS, *MAP_OWNER_LINKS), 0))
+        return run_frame(frame, link, backend, options)
+
+
+@contextlib.contextmanager
+def session(options: Options, map_owner: str | None, map_path: str | None
+            ) -> Iterator[tuple[Backend, MapOwnerLink | None, tuple | None]]:
+    """(backend, map-owner link, None) for garbled runs: the servers and the map owner
+    connected (started here for ``--map``) for the block; (backend, None, (published
+    map, its points)) in the clear for ``--map`` with --backend cleartext or float64."""
     if options.backend != "garbled":
         try:
-            published, values = owner_values(load_map(map_path))
+            known = owner_values(load_map(map_path))
         except (ProblemError, ValueError) as exc:
             raise ProblemError(f"--map {map_path}: {exc}") from None
-        backend = Float64Backend() if options.backend == "float64" else CircuitBackend()
-        return record(localize_known(frame, published, values, options, backend), options,
-                      dict.fromkeys((*LINKS, *MAP_OWNER_LINKS), 0))
+        yield (Float64Backend() if options.backend == "float64" else CircuitBackend()), \
+            None, known
+        return
     with connected(options.garbler, options.evaluator, options.tls_dir,
                    busy_wait=options.busy_wait, cert_name=options.cert_name,
                    link_timeout=options.link_timeout, scheme=options.scheme,
@@ -78,25 +92,28 @@ def localize_frame(path: str, options: Options, map_owner: str | None,
         evaluator = options.evaluator or (services.evaluator_addr if services else None)
         with _map_owner(map_owner, map_path, tls_dir, evaluator) as address, \
                 MapOwnerLink(address, tls_dir, options.cert_name) as link:
-            return run_frame(frame, link, GarbledBackend(runner), options)
+            yield GarbledBackend(runner), link, None
 
 
 def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
-              options: Options) -> dict:
-    """One frame over an open map-owner link and a garbled backend."""
+              options: Options, start: PoseVectors | None = None,
+              runs: int | None = None) -> dict:
+    """One frame over an open map-owner link and a garbled backend: padded from its own
+    initial pose, or (a stream's tracking schedule) exactly ``runs`` from ``start``."""
     before = {**backend.traffic(), **link.traffic}
     audited = audit_counts(backend)
     published = link.published or link.open()
     handle, masked = link.select(frame.map_ids)
     backend.secure.use_frame(handle, link.address)
     try:
-        result = localize_shared(frame, published, masked, options, backend)
+        result = localize_shared(frame, published, masked, options, backend, start, runs)
     except IntegrityFailure as exc:  # the frame's audits go with its failure
         exc.audits = audits_since(audited, audit_counts(backend))
         raise
     after = {**backend.traffic(), **link.traffic}
     out = record(result, options, {k: after.get(k, 0) - before.get(k, 0)
-                                   for k in (*LINKS, *MAP_OWNER_LINKS)})
+                                   for k in (*LINKS, *MAP_OWNER_LINKS)},
+                 tracked=runs is not None)
     out["audits"] = audits_since(audited, audit_counts(backend))
     return out
 
@@ -119,16 +136,21 @@ def _map_owner(address: str | None, map_path: str | None, tls_dir: str | Path,
             daemon.stop()
 
 
-def record(result: Localized, options: Options, traffic: dict[str, int]) -> dict:
+def record(result: Localized, options: Options, traffic: dict[str, int],
+           tracked: bool = False) -> dict:
     """A snail-result/1 record with ``"setting": "map-owner"``. The device holds no 3D
-    point, so the trust checks are those of the cost alone: converged and the RMS."""
-    if not result.converged:
+    point, so the trust checks are those of the cost alone: converged (or ``tracked``, a
+    frame of the fixed schedule) and the RMS, at the last pose a run evaluated."""
+    if not result.converged and not tracked:
         status, warnings = "not_converged", ["the iteration limit came before convergence"]
     elif not result.rms_px <= options.max_rms_px:
         status, warnings = "bad_fit", [f"reprojection RMS {result.rms_px:.2f} px is above "
                                        f"--max-rms-px {options.max_rms_px:g}"]
     else:
-        status, warnings = "converged", []
+        status, warnings = ("tracked" if tracked else "converged"), []
+    if tracked and result.invocations == 1:
+        warnings.append("rms_px is the prediction's: with one run a frame no run evaluates "
+                        "the answer (--runs-per-frame 2 checks the first step's pose)")
     iface = interface(result.spec)
     out = {
         "format": RESULT_FORMAT, "setting": "map-owner",

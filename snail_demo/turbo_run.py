@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -16,10 +15,8 @@ from snail_client.progress import bar
 
 from .draw import frame, top_down
 from .render import Look
-from .turbo import RobotPose, drive, robot_camera, room, summary
+from .turbo import START, TARGET, drive, robot_camera, room, summary
 
-START = RobotPose(0.35, -0.55, math.radians(35))
-TARGET = RobotPose(1.6, 0.25, 0.0)
 FPS = 4
 MAX_TAGS = 4  # the 4 largest tags in view, padded to 16 points: one circuit for every frame
 

@@ -47,6 +47,17 @@ def session_outcomes(log: Path) -> list[str]:
             if '"event": "session"' in line]
 
 
+def session_lines(log: Path) -> list[dict]:
+    """Every session line of a daemon's log, in the order the sessions ended."""
+    return [json.loads(line) for line in log.read_text().splitlines()
+            if '"event": "session"' in line]
+
+
+def evaluator_runs(services: Services) -> list[dict]:
+    """The evaluator's sessions that ran (outcome ok): one per secure run."""
+    return [s for s in session_lines(services.evaluator.log) if s["outcome"] == "ok"]
+
+
 def sigint_default() -> None:
     """``preexec_fn`` for a child that a test interrupts with SIGINT: it gets SIGINT as a
     terminal's Ctrl-C would reach it, also when this test run was started in the

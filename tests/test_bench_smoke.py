@@ -56,7 +56,7 @@ def _json(out: subprocess.CompletedProcess | object, key: str) -> dict:
 # every subcommand and the test that runs it below (a new command must add one)
 COVERED = {
     "bench": {"accuracy", "audits", "bristol", "circuit", "compiler", "engine", "fuzz", "netem",
-              "ops", "paper", "service", "soak", "verify-evidence"},
+              "ops", "paper", "service", "soak", "track", "verify-evidence"},
     "demo": {"accuracy", "turbo"},
 }
 
@@ -132,6 +132,13 @@ def test_bench_verify_evidence_of_no_file(tmp_path):
     path.write_text('{"format": "snail-evidence/1"}')
     out = _run("snail_bench.cli", "verify-evidence", str(path))
     assert out.returncode == 1 and json.loads(out.stdout)["proven"] is False
+
+
+def test_bench_track():
+    out = _run("snail_bench.cli", "-q", "track", "--points", "4", "--frames", "4", "--json")
+    assert out.returncode == 0, out.stderr
+    entry = _json(out, "track")["nx-sil-n4"]
+    assert entry["frames"] == 4 and entry["setting"] == "offload"
 
 
 def test_bench_soak():

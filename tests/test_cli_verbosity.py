@@ -73,7 +73,7 @@ def test_quiet_still_prints_the_result(args: list[str]):
 
 def test_quiet_track_prints_one_line_a_frame(tmp_path):
     (tmp_path / "a.json").write_text((EXAMPLES / "synthetic_n6.json").read_text())
-    (tmp_path / "b.json").write_text((EXAMPLES / "synthetic_n12.json").read_text())
+    (tmp_path / "b.json").write_text((EXAMPLES / "synthetic_n6.json").read_text())
     result = _run(client_main, ["track", "--input", str(tmp_path), "--backend", "float64",
                                 "-q"])
     assert result.exit_code == 0, result.output

@@ -29,8 +29,9 @@ FLOORS = {
     "snail_garbler": 5,
     "snail_evaluator": 5,
     "snail_mapd": 5,
-    "snail_bench": 6,
-    "snail_demo": 6,
+    "snail_sim": 6,
+    "snail_bench": 7,
+    "snail_demo": 7,
 }
 
 

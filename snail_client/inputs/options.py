@@ -120,8 +120,10 @@ def load_frame(input_path: str | None, kw: dict) -> tuple[str, Problem]:
     return name, problem
 
 
-def load_frames(input_path: str | None, kw: dict) -> list[tuple[str, Problem | ProblemError]]:
-    """``track``'s named frames (a frame that cannot be built is its ProblemError)."""
+def load_frames(input_path: str | None, kw: dict
+                ) -> list[tuple[str, Problem | ProblemError | Callable[[], Problem]]]:
+    """``track``'s named frames: a problem, the ProblemError of one that cannot be read,
+    or (an image) what builds it when the tracker takes it."""
     flag = _one_source({"--input": input_path, "--image-dir": kw.get("image_dir")})
     _check_flags(kw, flag)
     if flag == "--input":

@@ -4,10 +4,12 @@ ProblemError) whose text starts with the file or flag at fault."""
 
 from __future__ import annotations
 
+import functools
 import json
+from collections.abc import Callable
 from pathlib import Path
 
-from snail_common.loc.problem import Problem, ProblemError, problem_to_json
+from snail_common.loc.problem import Problem, problem_to_json
 
 from .apriltag import problem_from_image, read_image
 from .camera import Camera, load_camera
@@ -44,16 +46,12 @@ def image_files(directory: str | Path) -> list[Path]:
 
 
 def image_sequence(directory: str | Path, tagmap: TagMap,
-                   camera: Camera) -> list[tuple[str, Problem | ProblemError]]:
-    """``track``'s frames from a folder of images, each named by its file and built on
-    its own, so an image without a mapped tag is reported and the others still run."""
-    frames: list[tuple[str, Problem | ProblemError]] = []
-    for path in image_files(directory):
-        try:
-            frames.append((path.name, image_problem(path, tagmap, camera)))
-        except ProblemError as exc:
-            frames.append((path.name, exc))
-    return frames
+                   camera: Camera) -> list[tuple[str, Callable[[], Problem]]]:
+    """``track``'s frames from a folder of images, each named by its file and built when
+    the tracker takes it (reading and detection are part of its latency), on its own: an
+    image without a mapped tag is reported and the others still run."""
+    return [(path.name, functools.partial(image_problem, path, tagmap, camera))
+            for path in image_files(directory)]
 
 
 def save_problem(problem: Problem, path: str | Path) -> None:

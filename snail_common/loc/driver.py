@@ -100,7 +100,7 @@ def relative_step(step: np.ndarray, pose: Pose) -> float:
                float(np.linalg.norm(w)))
 
 
-class _Caller:
+class Caller:
     """Times and records backend calls."""
 
     def __init__(self, nrm: Normalized, backend: IterationBackend) -> None:
@@ -119,7 +119,8 @@ class _Caller:
         self.history[-1] = CallRecord(last.kind, last.lam, last.cost, True, last.wall_s)
 
 
-def _better(new: float, old: float) -> bool:
+def better(new: float, old: float) -> bool:
+    """A finite cost below the old one (a NaN from a broken circuit never wins)."""
     return math.isfinite(new) and new < old
 
 
@@ -129,7 +130,7 @@ def run_lm(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
            step_tol: float = STEP_TOL) -> DriverResult:
     """Levenberg-Marquardt with accept/reject (see the module doc): damped by the gain
     ratio when the backend returns the normal equations, by x10 / /10 when only steps."""
-    call = _Caller(nrm, backend)
+    call = Caller(nrm, backend)
     limits = _Limits(max_iterations, lam_min, lam_max, cost_tol, step_tol)
     lam = min(max(lam0, lam_min), lam_max)
     start = call(pose0, lam, "start")
@@ -148,7 +149,7 @@ class _Limits:
     step_tol: float
 
 
-def _lm_on_steps(call: _Caller, pose: Pose, res: IterationResult, lam: float,
+def _lm_on_steps(call: Caller, pose: Pose, res: IterationResult, lam: float,
                  limits: _Limits) -> tuple[Pose, float, int, bool]:
     """The circuit returns only the damped step: a candidate is called with lambda / 10
     already, and a rejected step costs a retry call at lambda * 10."""
@@ -158,7 +159,7 @@ def _lm_on_steps(call: _Caller, pose: Pose, res: IterationResult, lam: float,
         cand, lam_next = apply_step(pose, step), max(lam / 10.0, limits.lam_min)
         res = call(cand, lam_next, "candidate")
         iterations += 1
-        if _better(res.cost, cost):
+        if better(res.cost, cost):
             call.mark_accepted()
             converged = (cost - res.cost <= limits.cost_tol * cost
                          or relative_step(res.step, cand) <= limits.step_tol)
@@ -175,7 +176,7 @@ def _lm_on_steps(call: _Caller, pose: Pose, res: IterationResult, lam: float,
     return pose, cost, iterations, converged
 
 
-def _lm_on_model(call: _Caller, pose: Pose, res: IterationResult, lam: float,
+def _lm_on_model(call: Caller, pose: Pose, res: IterationResult, lam: float,
                  limits: _Limits) -> tuple[Pose, float, int, bool]:
     """The client holds the normal equations: steps are damped here, a rejected one is
     re-damped with no call, and lambda follows the gain ratio (Nielsen)."""
@@ -187,7 +188,7 @@ def _lm_on_model(call: _Caller, pose: Pose, res: IterationResult, lam: float,
         cand = apply_step(pose, step)
         res = call(cand, lam, "candidate")
         iterations += 1
-        if _better(res.cost, cost):
+        if better(res.cost, cost):
             call.mark_accepted()
             predicted = predicted_reduction(normal, step)
             # rho < 0 (a model tipped non-convex at the noise floor) raises lambda steeply
@@ -230,7 +231,7 @@ def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
     """Gauss-Newton (lambda = 0), reporting the best pose seen. Safeguarded (default): a
     step that does not lower the cost is halved, down to MIN_STEP_SCALE; unguarded (the
     paper's GN): every finite step is taken."""
-    call = _Caller(nrm, backend)
+    call = Caller(nrm, backend)
     pose, res = pose0, call(pose0, 0.0, "start")
     best_pose, best_cost = pose, res.cost
     cost, step, scale = res.cost, res.step, 1.0
@@ -241,7 +242,7 @@ def run_gn(nrm: Normalized, pose0: Pose, backend: IterationBackend, max_iteratio
         iterations += 1
         if not math.isfinite(res.cost) and not safeguard:
             break
-        if safeguard and not _better(res.cost, cost):
+        if safeguard and not better(res.cost, cost):
             if _indistinguishable(res.cost, cost, cost_tol):
                 converged = True
             elif scale > MIN_STEP_SCALE:

@@ -68,7 +68,7 @@ class Frame:
     dist: np.ndarray  # (k,)
     points2d: np.ndarray  # (n, 2) pixels
     map_ids: np.ndarray  # (n,) int64
-    initial_pose: PoseVectors
+    initial_pose: PoseVectors | None  # None only for frames after a sequence's first
     image_size: tuple[int, int] | None = None
 
     @property
@@ -151,8 +151,9 @@ def _points_checked(points: list) -> tuple[np.ndarray, np.ndarray]:
     return ids, xyz
 
 
-def parse_frame(obj: Any) -> Frame:
-    """Validate a decoded ``snail-frame/1`` object."""
+def parse_frame(obj: Any, *, require_initial_pose: bool = True) -> Frame:
+    """Validate a decoded ``snail-frame/1`` object (a sequence's frames after the first
+    may leave out the initial pose: they start from the track's prediction)."""
     obj = _object(obj, "frame")
     _format(obj, FRAME_FORMAT)
     K, dist, size = parse_camera_block(_field(obj, "camera", ""))
@@ -162,7 +163,10 @@ def parse_frame(obj: Any) -> Frame:
     if len(raw_ids) != len(p2):
         raise ProblemError(f"map_ids: {len(raw_ids)} ids but points2d has {len(p2)} points")
     ids = np.array([_id(v, f"map_ids[{i}]") for i, v in enumerate(raw_ids)], dtype=np.int64)
-    pose = _pose(_field(obj, "initial_pose", ""), "initial_pose")
+    if obj.get("initial_pose") is None and not require_initial_pose:
+        pose = None
+    else:
+        pose = _pose(_field(obj, "initial_pose", ""), "initial_pose")
     return Frame(K=K, dist=dist, points2d=p2, map_ids=ids, initial_pose=pose,
                  image_size=size)
 

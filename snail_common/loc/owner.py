@@ -21,10 +21,10 @@ from snail_common.pnp.spec import MASKED, OWNER_PAD, Spec
 from .backends import Backend, Values, frame_inputs
 from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
 from .mapfile import Frame, MapPoints
-from .pipeline import Localized, Options, solve_sil
+from .pipeline import Localized, Options, solve_fixed, solve_sil
 from .preprocess import Frame as Similarity
 from .preprocess import distortion_weights, undistort
-from .problem import Problem, ProblemError
+from .problem import PoseVectors, Problem, ProblemError
 from .types import Normalized
 
 POINT_BYTES = 12  # three float32 words
@@ -132,36 +132,52 @@ class SharedWorld:
 
 
 def localize_shared(frame: Frame, published: PublishedMap, masked: np.ndarray,
-                    options: Options, backend: Backend) -> Localized:
+                    options: Options, backend: Backend, start: PoseVectors | None = None,
+                    runs: int | None = None) -> Localized:
     """Refine the frame's pose on the map-owner circuit: the device's share ``masked``
-    ((n, 3) uint32) is all it holds of its map points."""
+    ((n, 3) uint32) is all it holds of its map points. From ``start`` (default: the
+    frame's initial pose); ``runs``: exactly that many runs, the tracking schedule's frame
+    (steps.py), instead of the padded localization."""
     spec = Spec(options.algorithm, "sil", options.solver, frame.n, owner=True,
                 arith=options.arith_used)
     nrm = _normalized(frame, np.zeros((frame.n, 3)))
-    return _localize(frame, published, nrm, spec, options, SharedWorld(backend, masked))
+    return _localize(frame, published, nrm, spec, options, SharedWorld(backend, masked),
+                     start, runs)
 
 
 def localize_known(frame: Frame, published: PublishedMap, values: np.ndarray,
-                   options: Options, backend: Backend) -> Localized:
+                   options: Options, backend: Backend, start: PoseVectors | None = None,
+                   runs: int | None = None) -> Localized:
     """The same localization with the map points in the clear (the map owner's (M, 12)
     ``values``) on the plain SIL circuit: the oracle of ``localize_shared``."""
     points = values[published.positions(frame.map_ids)].copy().view("<f4")
     spec = Spec(options.algorithm, "sil", options.solver, frame.n, arith=options.arith_used)
     nrm = _normalized(frame, points.astype(np.float64))
-    return _localize(frame, published, nrm, spec, options, backend)
+    return _localize(frame, published, nrm, spec, options, backend, start, runs)
 
 
 def _localize(frame: Frame, published: PublishedMap, nrm: Normalized, spec: Spec,
-              options: Options, backend: Backend | SharedWorld) -> Localized:
+              options: Options, backend: Backend | SharedWorld,
+              start_pose: PoseVectors | None, runs: int | None) -> Localized:
+    """Padded (runs None) or exactly ``runs``. The RMS is the cost's, at the last pose a
+    run evaluated: the device holds no 3D point to check the answer itself with."""
     start = time.perf_counter()
     similarity = Similarity(published.center, published.scale, frame.n)
     backend.prepare(spec)
-    pose0 = similarity.to_normalized(pose_from_rvec_tvec(frame.initial_pose.rvec,
-                                                         frame.initial_pose.tvec))
-    backend.expect(spec, options.min_invocations, frame_inputs(spec, nrm))
+    initial = start_pose or frame.initial_pose
+    pose0 = similarity.to_normalized(pose_from_rvec_tvec(initial.rvec, initial.tvec))
+    count = options.min_invocations if runs is None else runs
+    # a tracked frame's runs take all their labels when invoked (pipeline.refine_fixed)
+    backend.expect(spec, count, frame_inputs(spec, nrm) if runs is None else None)
     first = backend.invocations
-    pose, cost, iterations, converged, walls = solve_sil(spec, options, backend, nrm, pose0)
-    backend.pad(spec, first + options.min_invocations)
+    if runs is None:
+        pose, cost, iterations, converged, walls = solve_sil(spec, options, backend, nrm,
+                                                             pose0)
+    else:
+        stepped, walls = solve_fixed(spec, options, backend, nrm, pose0, runs)
+        pose, cost, iterations, converged = (stepped.pose, stepped.cost, stepped.steps,
+                                             False)
+    backend.pad(spec, first + count)
     rvec, tvec = pose_to_rvec_tvec(similarity.to_original(pose))
     return Localized(rvec, tvec, cost, similarity.rms_px(cost), iterations,
                      backend.invocations - first, converged, walls, spec,

@@ -8,7 +8,9 @@ backend, and maps the pose back to the problem's frame.
 
 Privacy policy: the servers see how many invocations a frame makes, so a SIL frame makes
 at least ``min_invocations``, padded with dummy runs (``Backend.pad``) when the driver
-stops early. A DO frame is always one invocation, whatever the data.
+stops early. A DO frame is always one invocation, whatever the data. A frame of the
+tracking schedule (``refine_fixed``, schedule.py) makes exactly K, each one step from a
+prediction (steps.py): a count fixed before the data is seen hides as much.
 
 Where the 6x6 system is solved (``solve``): by default in SIL mode the circuit returns
 the normal equations and the client damps and solves them (sil.py says why that is safe
@@ -32,11 +34,13 @@ from snail_common.pnp.spec import DO_ITERATIONS, DO_MAX_ITERATIONS, Spec
 from .backends import Backend, frame_inputs, sil_values
 from .driver import COST_TOL, LAMBDA_START, run
 from .geometry import pose_from_rvec_tvec, pose_to_rvec_tvec
+from .preprocess import Frame as Similarity
 from .preprocess import normalize, pad
 from .problem import PoseVectors, Problem, check_in_front
 from .quadratic import damped_step
 from .reference import reprojection_rms
-from .types import IterationResult, NormalEquations, Normalized, Pose
+from .steps import Stepped, run_fixed
+from .types import IterationBackend, IterationResult, NormalEquations, Normalized, Pose
 
 MODES = ("sil", "do")
 SOLVES = ("client", "circuit")
@@ -128,15 +132,7 @@ def localize(problem: Problem, options: Options, backend: Backend,
     """Refine the pose of ``problem`` from ``initial`` (default: the file's initial pose)
     on ``backend``."""
     start = time.perf_counter()
-    pose_vectors = initial or problem.initial_pose
-    if pose_vectors is None:
-        raise ValueError("initial_pose: required for the first frame")
-    check_in_front(problem, pose_vectors)
-    nrm, frame = normalize(problem)
-    spec = options.spec(problem.n)
-    nrm = pad(nrm, spec.points) if spec.points != nrm.n else nrm
-    backend.prepare(spec)  # build or load now, not inside the first timed call
-    pose0 = frame.to_normalized(pose_from_rvec_tvec(pose_vectors.rvec, pose_vectors.tvec))
+    nrm, frame, spec, pose0 = _prepared(problem, options, backend, initial)
     if options.mode == "sil":
         backend.expect(spec, options.min_invocations, frame_inputs(spec, nrm))
     else:
@@ -152,11 +148,74 @@ def localize(problem: Problem, options: Options, backend: Backend,
                      time.perf_counter() - start)
 
 
+def refine_fixed(problem: Problem, options: Options, backend: Backend,
+                 start_pose: PoseVectors, runs: int) -> Localized:
+    """Exactly ``runs`` SIL invocations from ``start_pose`` (a tracking prediction), each
+    one GN or LM step (steps.py): the tracking schedule's frame. Never ``converged``: the
+    answer's own cost is not evaluated; its RMS here is computed in the clear.
+
+    The frame's inputs are not declared shared by its runs (``expect`` without them): every
+    session takes all its labels when invoked, as a padding run does. Declared, their
+    labels would go ahead with each session, but every session needs its own anyway (no
+    byte is saved), and the garble-ahead pool gives every session it holds to the frame,
+    so the next frame, with other inputs, cancels those it did not use: at n = 6 and one
+    run a frame that was a garbled session thrown away every other frame, 40-48 frames/s
+    against 92-94 (two runs a frame: the same rate when quiet, 141 of 759 sessions
+    thrown away on one of two runs)."""
+    if options.mode != "sil":
+        raise ValueError("--runs-per-frame: --mode do makes one run a frame already")
+    start = time.perf_counter()
+    nrm, frame, spec, pose0 = _prepared(problem, options, backend, start_pose)
+    backend.expect(spec, runs)
+    first = backend.invocations
+    stepped, walls = solve_fixed(spec, options, backend, nrm, pose0, runs)
+    backend.pad(spec, first + runs)  # a run that raised never returns here
+    rvec, tvec = pose_to_rvec_tvec(frame.to_original(stepped.pose))
+    return Localized(rvec, tvec, stepped.cost, reprojection_rms(problem, rvec, tvec),
+                     stepped.steps, backend.invocations - first, False, walls, spec,
+                     time.perf_counter() - start)
+
+
+def _prepared(problem: Problem, options: Options, backend: Backend,
+              initial: PoseVectors | None) -> tuple[Normalized, Similarity, Spec, Pose]:
+    """The problem as its circuit takes it, the similarity back, the circuit (built or
+    loaded now, not inside the first timed call) and the start in the circuit's frame."""
+    pose_vectors = initial or problem.initial_pose
+    if pose_vectors is None:
+        raise ValueError("initial_pose: required for the first frame")
+    check_in_front(problem, pose_vectors)
+    nrm, frame = normalize(problem)
+    spec = options.spec(problem.n)
+    nrm = pad(nrm, spec.points) if spec.points != nrm.n else nrm
+    backend.prepare(spec)
+    pose0 = frame.to_normalized(pose_from_rvec_tvec(pose_vectors.rvec, pose_vectors.tvec))
+    return nrm, frame, spec, pose0
+
+
 def solve_sil(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
-               pose0: Pose) -> tuple[Pose, float, int, bool, list[float]]:
+              pose0: Pose) -> tuple[Pose, float, int, bool, list[float]]:
     """The LM/GN driver, one SIL invocation per call (per new pose, when the client
     solves); the map-owner setting drives it too (owner.py)."""
     walls: list[float] = []
+    step_at = iteration_backend(spec, backend, walls)
+    result = run(options.algorithm, nrm, pose0, step_at, options.max_iterations)
+    return result.pose, float(result.cost), result.iterations, result.converged, walls
+
+
+def solve_fixed(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
+                pose0: Pose, runs: int) -> tuple[Stepped, list[float]]:
+    """Exactly ``runs`` SIL invocations from pose0 (steps.py), and their wall times."""
+    walls: list[float] = []
+    stepped = run_fixed(options.algorithm, nrm, pose0, iteration_backend(spec, backend, walls),
+                        runs)
+    return stepped, walls
+
+
+def iteration_backend(spec: Spec, backend: Backend, walls: list[float]) -> IterationBackend:
+    """One SIL invocation per call on ``backend``, timed into ``walls``: the normal
+    equations solved here when the circuit returns them, else the circuit's step."""
+    if spec.solver == CLIENT:
+        return _ClientSolve(spec, backend, walls)
 
     def iteration(problem: Normalized, pose: Pose, lam: float) -> IterationResult:
         start = time.perf_counter()
@@ -165,9 +224,7 @@ def solve_sil(spec: Spec, options: Options, backend: Backend, nrm: Normalized,
         return IterationResult(step=np.asarray(out["step"], np.float64),
                                cost=float(out["cost"]))
 
-    step_at = _ClientSolve(spec, backend, walls) if spec.solver == CLIENT else iteration
-    result = run(options.algorithm, nrm, pose0, step_at, options.max_iterations)
-    return result.pose, float(result.cost), result.iterations, result.converged, walls
+    return iteration
 
 
 class _ClientSolve:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -178,17 +179,21 @@ def load_sequence(path: str | Path) -> list[Problem]:
     return frames
 
 
-def read_sequence(path: str | Path) -> list[tuple[str, Problem | ProblemError]]:
+def read_sequence(path: str | Path, parse: Callable[..., Any] | None = None
+                  ) -> list[tuple[str, Any]]:
     """The frames of a sequence for `track`, each named (``line 3``, a file name,
-    ``[2]``) and parsed on its own, so one bad frame is reported and the others still
-    run: a folder of .json problem files in name order, a JSON array of problems, one
-    (pretty-printed) problem, or JSON Lines (blank lines skipped). Only the first frame
-    needs an initial pose. ProblemError for a sequence that cannot be read at all."""
+    ``[2]``) and parsed on its own, so one bad frame is reported (as its ProblemError) and
+    the others still run: a folder of .json problem files in name order, a JSON array of
+    problems, one (pretty-printed) problem, or JSON Lines (blank lines skipped). Only the
+    first frame needs an initial pose. ``parse`` (default ``parse_problem``) takes a
+    decoded object and ``require_initial_pose``: ``mapfile.parse_frame`` reads a sequence
+    of snail-frame/1. ProblemError for a sequence that cannot be read at all."""
+    parse = parse or parse_problem
     path = Path(path)
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.suffix == ".json" and p.is_file())
         texts = [(p.name, _read(p)) for p in files]
-        items = [(name, _parse_named(name, text, i == 0)) for i, (name, text)
+        items = [(name, _parse_named(name, text, i == 0, parse)) for i, (name, text)
                  in enumerate(texts)]
     else:
         text = _read(path)
@@ -197,26 +202,26 @@ def read_sequence(path: str | Path) -> list[tuple[str, Problem | ProblemError]]:
         except (json.JSONDecodeError, RecursionError):
             whole = None  # JSON Lines, or broken: read line by line
         if isinstance(whole, list):
-            items = [(f"[{i}]", _parse_named(f"[{i}]", obj, i == 0, parsed=True))
+            items = [(f"[{i}]", _parse_named(f"[{i}]", obj, i == 0, parse, parsed=True))
                      for i, obj in enumerate(whole)]
         elif isinstance(whole, dict):  # one problem: on one line (JSON Lines) or several
             name = "line 1" if "\n" not in text.strip() else "problem"
-            items = [(name, _parse_named(name, whole, True, parsed=True))]
+            items = [(name, _parse_named(name, whole, True, parse, parsed=True))]
         else:
             lines = [(no, line) for no, line in enumerate(text.splitlines(), 1)
                      if line.strip()]
-            items = [(f"line {no}", _parse_named(f"line {no}", line, i == 0))
+            items = [(f"line {no}", _parse_named(f"line {no}", line, i == 0, parse))
                      for i, (no, line) in enumerate(lines)]
     if not items:
         raise ProblemError(f"{path}: no problems in the sequence")
     return items
 
 
-def _parse_named(where: str, source: Any, first: bool,
-                 parsed: bool = False) -> Problem | ProblemError:
+def _parse_named(where: str, source: Any, first: bool, parse: Callable[..., Any],
+                 parsed: bool = False) -> Any:
     try:
         obj = source if parsed else parse_json(source)
-        return parse_problem(obj, require_initial_pose=first)
+        return parse(obj, require_initial_pose=first)
     except ProblemError as exc:
         return ProblemError(f"{where}: {exc}")
 

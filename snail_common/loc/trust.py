@@ -3,8 +3,9 @@
 A solver that stops is not a solver that found the pose: a mirrored scene converges to a
 pose with the map behind the camera, collinear points leave a rotation free, and a fit of
 tens of pixels is a wrong match, not noise. The result says which (``status``, see
-FORMATS.md), the command exits 3 for anything but ``converged``, and inputs that cannot
-determine a pose are named before any circuit runs.
+FORMATS.md), the command exits 3 for anything but a trusted status (``converged``, or
+``tracked`` for a frame of the tracking schedule), and inputs that cannot determine a pose
+are named before any circuit runs.
 """
 
 from __future__ import annotations
@@ -14,7 +15,11 @@ import numpy as np
 from .geometry import rvec_from_matrix, so3_exp
 from .problem import PoseVectors, Problem
 
-STATUSES = ("converged", "not_converged", "degenerate", "bad_fit", "behind_camera")
+STATUSES = ("converged", "tracked", "not_converged", "degenerate", "bad_fit",
+            "behind_camera")
+# a pose to use: converged, or a tracked frame (a fixed number of steps from a prediction,
+# steps.py) whose answer passed every check; its own cost was never evaluated
+TRUSTED = ("converged", "tracked")
 DEFAULT_MAX_RMS_PX = 8.0
 MIN_POINTS = 4
 FLAT = 1e-6  # second singular value / first below this: points on one line
@@ -39,9 +44,11 @@ def _on_a_line(points: np.ndarray) -> bool:
 
 
 def assess(problem: Problem, rvec: np.ndarray, tvec: np.ndarray, converged: bool,
-           rms_px: float, max_rms_px: float = DEFAULT_MAX_RMS_PX) -> tuple[str, list[str]]:
+           rms_px: float, max_rms_px: float = DEFAULT_MAX_RMS_PX,
+           tracked: bool = False) -> tuple[str, list[str]]:
     """(status, warnings) of a solved pose: behind the camera, then not converged, then a
-    bad fit, else converged; points projecting outside the image are a warning."""
+    bad fit, else converged (``tracked`` for a fixed-schedule frame, which never iterates
+    to convergence); points projecting outside the image are a warning."""
     R = so3_exp(np.asarray(rvec, np.float64))
     cam = problem.points3d @ R.T + np.asarray(tvec, np.float64)
     warnings: list[str] = []
@@ -57,12 +64,12 @@ def assess(problem: Problem, rvec: np.ndarray, tvec: np.ndarray, converged: bool
     if behind:
         return "behind_camera", [f"{behind} of {problem.n} points end behind the camera",
                                  *warnings]
-    if not converged:
+    if not converged and not tracked:
         return "not_converged", ["the iteration limit came before convergence", *warnings]
     if not rms_px <= max_rms_px:
         return "bad_fit", [f"reprojection RMS {rms_px:.2f} px is above --max-rms-px "
                            f"{max_rms_px:g}", *warnings]
-    return "converged", warnings
+    return ("tracked" if tracked else "converged"), warnings
 
 
 def pose_error(rvec: np.ndarray, tvec: np.ndarray, reference: PoseVectors) -> dict:
