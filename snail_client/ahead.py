@@ -56,23 +56,43 @@ class AheadPool:
         self._prepared: dict[str, deque[Prepared]] = {}
         self._expected: dict[str, int] = {}
         self._fixed: dict[str, FixedInputs | None] = {}
+        # the frame before the current one, while its runs are still coming (frames in
+        # flight): its shared inputs and how many runs it has left
+        self._unfinished: dict[str, tuple[FixedInputs, int]] = {}
         self._filling: set[asyncio.Task] = set()
 
     def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
         """At least ``count`` invocations of ``circuit_id`` are coming: keep up to
         ``ahead`` of them prepared (garbled) before they are needed, with the labels of
         the ``fixed`` input bits they share already at the evaluator."""
+        left, before = self._expected.get(circuit_id, 0), self._fixed.get(circuit_id)
+        if left > 0 and before is not None and not FixedInputs.same(before, fixed):
+            self._unfinished[circuit_id] = (before, left)  # its runs still to come
         self._fixed[circuit_id] = fixed
         self._frames[circuit_id] = self._frames.get(circuit_id, 0) + 1
         if self._warm not in (None, circuit_id):  # another circuit now (a new n): its
             self._drop_warm(self._warm)  # sessions kept between frames would only linger
         self._warm = circuit_id
         queue = self._prepared.get(circuit_id, deque())
+        # sessions kept garbled between frames take this frame's labels only as many as
+        # its runs need: the others stay warm for the next frame (a frame of one run
+        # would otherwise spend one and see the rest cancelled by the next frame)
+        needed = max(count, 0) - sum(FixedInputs.same(x.fixed, fixed) for x in queue)
+        unfinished = self._unfinished.get(circuit_id, (None, 0))[0]
         for session in [x for x in queue if not FixedInputs.same(x.fixed, fixed)]:
+            if unfinished is not None and FixedInputs.same(session.fixed, unfinished):
+                continue  # the frame before still has runs to make with it
+            if session.fixed is None and session.usable and needed <= 0:
+                continue  # warm, and not needed by this frame
             if session.fixed is None and fixed is not None and self._adopt(session, fixed):
+                needed -= 1
                 continue  # kept garbled between frames: this frame's labels went now
             queue.remove(session)  # prepared for other shared bits: of no use now
             self._cancel(session)
+        ready = [x for x in queue if FixedInputs.same(x.fixed, fixed)]  # taken first
+        warm = [x for x in queue if not FixedInputs.same(x.fixed, fixed)]
+        queue.clear()
+        queue.extend(ready + warm)
         self._expected[circuit_id] = max(count, 0)
         self.fill(circuit_id)
 
@@ -102,18 +122,41 @@ class AheadPool:
     def take(self, circuit_id: str, bits: np.ndarray, frame: bytes | None) -> Prepared | None:
         """A prepared session of ``circuit_id`` the servers still hold and that fits
         ``bits`` (its fixed inputs' labels were sent for these values) and, for a map-owner
-        circuit, the map owner's ``frame``, if any."""
+        circuit, the map owner's ``frame``, if any: one holding this run's shared labels
+        first, else one kept warm. Sessions no run can use any more go (cancelled);
+        those of another frame still under way stay for it (frames in flight)."""
         queue = self._prepared.get(circuit_id)
-        while queue:
-            session = queue.popleft()
-            if session.usable and (not session.owner_bits
-                                   or session.frame == frame) \
-                    and (session.fixed is None or session.fixed.matches(bits)):
-                return session
+        if not queue:
+            return None
+        for session in [x for x in queue if not x.usable
+                        or (x.owner_bits and x.frame != frame)]:
+            queue.remove(session)
             if session.refused:
                 self.refused()
-            self._cancel(session)  # expired, evicted, other inputs ...: garble anew
-        return None
+            self._cancel(session)  # expired, evicted, an earlier map-owner frame's
+        fits = [x for x in queue if x.fixed is None or x.fixed.matches(bits)]
+        if not fits:
+            return None
+        session = next((x for x in fits if x.fixed is not None), fits[0])
+        queue.remove(session)
+        self._took(circuit_id, session)
+        return session
+
+    def _took(self, circuit_id: str, session: Prepared) -> None:
+        """Count a run of the frame before the current one, still under way; once its
+        runs are all taken, the sessions left with its labels go."""
+        unfinished = self._unfinished.get(circuit_id)
+        if unfinished is None or not FixedInputs.same(session.fixed, unfinished[0]):
+            return
+        fixed, left = unfinished[0], unfinished[1] - 1
+        if left > 0:
+            self._unfinished[circuit_id] = (fixed, left)
+            return
+        del self._unfinished[circuit_id]
+        queue = self._prepared.get(circuit_id, deque())
+        for other in [x for x in queue if FixedInputs.same(x.fixed, fixed)]:
+            queue.remove(other)
+            self._cancel(other)
 
     async def in_flight(self, circuit_id: str, bits: np.ndarray,
                         frame: bytes | None) -> Prepared | None:

@@ -352,7 +352,8 @@ class AsyncSecureRunner:
         scheme = self.session_scheme(circuit_id)
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
         chash = iface.content_hash
-        reserve = {"ahead": True} if ahead else {}
+        # said either way: a reservation's requests are the size of a live session's
+        reserve = {"ahead": ahead}
         try:
             sent_e = evaluator.conn.write(messages.make(
                 "session_start", sid=sid, circuit=circuit_id, hash=chash,

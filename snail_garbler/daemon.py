@@ -302,7 +302,7 @@ class GarblerDaemon(Attesting, Daemon):
         sent = link.start(messages.make("session_start", sid=sid, circuit=req["circuit"],
                                         hash=req["hash"],
                                         scheme=req.get("scheme", DEFAULT_SCHEME),
-                                        **({"ahead": True} if req.get("ahead") else {})))
+                                        ahead=bool(req.get("ahead"))))
         frames = self.attest.frames(garbler, req)  # hashed as sent (attest.py)
         clock = {"cpu_s": 0.0}
         pending = self.submit(_timed_next, frames, clock)

@@ -33,8 +33,9 @@ class Options:
     # fairness between clients, by certificate name (clients sharing a certificate share
     # these); the garbler's links to the evaluator are not counted
     max_sessions_per_peer: int = 32
-    # of those, sessions garbled ahead of need (reservations: net/slots.py)
-    max_ahead_per_peer: int = 4
+    # of those, sessions garbled ahead of need (reservations: net/slots.py): a client holds
+    # up to 3 ahead, and those its runs have taken are reservations here until streamed
+    max_ahead_per_peer: int = 8
     max_connections_per_peer: int = 64
     tls_dir: str | None = None  # where revoked.txt is read from (at start and on SIGHUP)
     metrics: tuple[str, int] | None = None  # HTTPS endpoint for /metrics and /health
