@@ -123,6 +123,7 @@ def test_bench_audits():
     assert out.returncode == 0, out.stderr
     report = _json(out, "audits")["loc/nx-sil-n4"]
     assert report["garbler"]["attest_share"]["median"] > 0
+    assert report["evaluator"]["digest_gb_per_s"]["median"] > 0
     assert report["client"]["cpu_s_per_audit"]["median"] > 0
 
 

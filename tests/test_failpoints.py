@@ -6,8 +6,10 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+import yaml
 
 from snail_client.blocking import SecureRunner
 from snail_client.embedded import embedded_services
@@ -46,6 +48,19 @@ def test_a_daemon_arms_its_own_role_only(disarmed):
     assert failpoints.configure("evaluator", env) == ["evaluator.digest=1/2"]
     assert not failpoints.fire("garbler.table_bit")
     assert failpoints.configure("garbler", env) == ["garbler.table_bit=always"]
+
+
+def test_the_compose_override_arms_a_cheat_of_the_garbler_alone(disarmed):
+    """docker-compose.failpoints.yml (deploy/compose-test's cheating garbler): a typo there
+    would show only where a Docker engine runs (the garbler exits 2); its point is the
+    swapped zero-label, which leaves every label valid, so that the audit names the
+    garbler (what deploy/compose-test expects), not the decoding."""
+    path = Path(__file__).resolve().parent.parent / "docker-compose.failpoints.yml"
+    services = yaml.safe_load(path.read_text())["services"]
+    assert set(services) == {"garbler"}
+    env = services["garbler"]["environment"]
+    assert failpoints.configure("garbler", env) == ["garbler.zero_label=always"]
+    assert failpoints.configure("evaluator", env) == []
 
 
 @pytest.mark.parametrize(("value", "says"), [
