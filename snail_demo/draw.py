@@ -15,6 +15,7 @@ from snail_client.inputs.camera import Camera
 from snail_client.inputs.tagmap import TagMap
 
 from .turbo import RobotPose, Run
+from .turbo_realtime import RealtimeRun
 
 MAP_PX = 480
 BOUNDS = (-0.2, 2.4, -1.2, 1.2)  # x0, x1, y0, y1 of the room in metres
@@ -49,19 +50,24 @@ def camera_view(image: np.ndarray, pose: Pose | None, tagmap: TagMap,
     return view
 
 
-def top_down(run: Run, target: RobotPose, tagmap: TagMap, size: int = MAP_PX) -> np.ndarray:
+def top_down(run: Run | RealtimeRun, target: RobotPose, tagmap: TagMap,
+             size: int = MAP_PX) -> np.ndarray:
     """The room from above: tags (black), target (grey), true path (blue), estimates
-    (red), the robot now (blue triangle)."""
+    (red; small dots under the path when there is one a camera frame), the robot now
+    (blue triangle)."""
     canvas = np.full((size, size, 3), 255, np.uint8)
     for tag in tagmap.tags.values():
         ends = tag.corners_world()[[0, 1]]
         cv2.line(canvas, _to_px(*ends[0][:2], size), _to_px(*ends[1][:2], size), BLACK, 3)
     _robot(canvas, target, GREY, size)
     true = [_to_px(p.x, p.y, size) for p in run.true_path]
-    if len(true) > 1:
+    dense = isinstance(run, RealtimeRun)
+    if len(true) > 1 and not dense:
         cv2.polylines(canvas, [np.array(true, np.int32)], False, BLUE, 2)
     for p in run.estimates:
-        cv2.circle(canvas, _to_px(p.x, p.y, size), 3, RED, -1)
+        cv2.circle(canvas, _to_px(p.x, p.y, size), 2 if dense else 3, RED, -1)
+    if len(true) > 1 and dense:
+        cv2.polylines(canvas, [np.array(true, np.int32)], False, BLUE, 1, cv2.LINE_AA)
     if run.true_path:
         _robot(canvas, run.true_path[-1], BLUE, size)
     for k, (text, colour) in enumerate([("true path", BLUE), ("private estimates", RED),
@@ -80,16 +86,21 @@ def _robot(canvas: np.ndarray, pose: RobotPose, colour: tuple, size: int) -> Non
     cv2.fillPoly(canvas, [pts], colour)
 
 
-def frame(run: Run, image: np.ndarray, pose: Pose | None, target: RobotPose,
-          tagmap: TagMap, camera: Camera) -> np.ndarray:
-    """One video frame: camera view and map side by side, with the step's numbers."""
-    left = camera_view(image, pose, tagmap, camera)
+def step_lines(run: Run) -> list[str]:
+    """A control step's numbers, for the step-by-step demo's video."""
     step = run.steps[-1]
-    lines = [f"step {len(run.steps)}  {step['status']}  {step['iterations']} iterations, "
-             f"{step['invocations']} secure runs",
-             f"{step['seconds']:.2f} s, {step['bytes'] / 1e6:.1f} MB, client CPU "
-             f"{step['client_cpu_s']:.2f} s, error {100 * step['position_error_m']:.1f} cm"]
-    for k, text in enumerate(lines):
+    return [f"step {len(run.steps)}  {step['status']}  {step['iterations']} iterations, "
+            f"{step['invocations']} secure runs",
+            f"{step['seconds']:.2f} s, {step['bytes'] / 1e6:.1f} MB, client CPU "
+            f"{step['client_cpu_s']:.2f} s, error {100 * step['position_error_m']:.1f} cm"]
+
+
+def frame(run: Run | RealtimeRun, image: np.ndarray, pose: Pose | None, target: RobotPose,
+          tagmap: TagMap, camera: Camera, lines: list[str] | None = None) -> np.ndarray:
+    """One video frame: camera view and map side by side, with ``lines`` of numbers (by
+    default the last step's)."""
+    left = camera_view(image, pose, tagmap, camera)
+    for k, text in enumerate(step_lines(run) if lines is None else lines):
         cv2.putText(left, text, (8, 20 + 20 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 200, 255),
                     1, cv2.LINE_AA)
     return np.hstack([left, top_down(run, target, tagmap, left.shape[0])])
