@@ -170,7 +170,7 @@ def _turbo_realtime(out: Path, backend: str, speed: float, camera_fps: float,
                f"{final['rotation_error_deg']:.2f} deg off; {final['steps']} private poses "
                f"({final['runs_first_frame']} secure runs for the first, then "
                f"{'/'.join(map(str, final['runs_after_first'])) or 'none'} a frame) at "
-               f"{final['fps']} frames/s, pose {1000 * latency['p50']:.0f} ms after capture "
-               f"(p95 {1000 * latency['p95']:.0f} ms); wrote {out}")
+               f"{final['fps'] or 0:.1f} frames/s, pose {1000 * latency['p50']:.0f} ms after "
+               f"capture (p95 {1000 * latency['p95']:.0f} ms); wrote {out}")
     if not final["reached"]:
         sys.exit(3)

@@ -104,3 +104,97 @@ def frame(run: Run | RealtimeRun, image: np.ndarray, pose: Pose | None, target: 
         cv2.putText(left, text, (8, 20 + 20 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 200, 255),
                     1, cv2.LINE_AA)
     return np.hstack([left, top_down(run, target, tagmap, left.shape[0])])
+
+
+INSET_M = 0.05  # the inset's half-width around the target, metres
+
+
+def realtime_plot(run: RealtimeRun, target: RobotPose, tagmap: TagMap,
+                  size: int = 720) -> np.ndarray:
+    """A real-time drive's trajectory.png: the room from above with the last centimetres
+    magnified around the target (the goal's 1 cm circle), over the drive's timeline."""
+    canvas = top_down(run, target, tagmap, size)
+    inset = _inset(run, target, size // 3)
+    x0, y0 = 10, size - 90 - inset.shape[0]
+    canvas[y0:y0 + inset.shape[0], x0:x0 + inset.shape[1]] = inset
+    return np.vstack([canvas, timeline(run, size)])
+
+
+def _inset(run: RealtimeRun, target: RobotPose, px: int) -> np.ndarray:
+    """The target's surroundings, INSET_M each way: the goal circle (GOAL_M), the true
+    path and the estimates near it, and where the robot stopped."""
+    from snail_sim.turbo_world import GOAL_M
+
+    canvas = np.full((px, px, 3), 255, np.uint8)
+    scale = px / (2 * INSET_M)
+
+    def at(x: float, y: float) -> tuple[int, int]:  # as _to_px: x up, y to the left
+        return (round(px / 2 + (target.y - y) * scale), round(px / 2 + (target.x - x) * scale))
+
+    cv2.circle(canvas, at(target.x, target.y), round(GOAL_M * scale), GREY, 1, cv2.LINE_AA)
+    near = [p for p in run.estimates if abs(p.x - target.x) < INSET_M
+            and abs(p.y - target.y) < INSET_M]
+    for p in near:
+        cv2.circle(canvas, at(p.x, p.y), 2, RED, -1)
+    true = [at(p.x, p.y) for p in run.true_path]
+    if len(true) > 1:
+        cv2.polylines(canvas, [np.array(true, np.int32)], False, BLUE, 1, cv2.LINE_AA)
+    end = run.end if run.end is not None else (run.true_path[-1] if run.true_path else None)
+    if end is not None:
+        cv2.drawMarker(canvas, at(end.x, end.y), BLUE, cv2.MARKER_CROSS, 12, 2)
+    cv2.drawMarker(canvas, at(target.x, target.y), GREY, cv2.MARKER_TILTED_CROSS, 8, 1)
+    cv2.rectangle(canvas, (0, 0), (px - 1, px - 1), BLACK, 1)
+    cv2.putText(canvas, f"target +/-{100 * INSET_M:.0f} cm, circle {100 * GOAL_M:.0f} cm",
+                (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.4, BLACK, 1, cv2.LINE_AA)
+    return canvas
+
+
+def timeline(run: RealtimeRun, width: int, panel: int = 100) -> np.ndarray:
+    """Along the drive's clock, a panel each: the commanded speed (cm/s), each pose's
+    latency from its frame's capture (ms, the padded first frame's off the scale) and how
+    far the estimate the controller steered on was from the truth then (mm)."""
+    steps = run.steps
+    series = [("commanded speed, cm/s", [100 * s["command"]["speed_mps"] for s in steps]),
+              ("pose latency from capture, ms", [1000 * s["latency_s"] for s in steps]),
+              ("steering estimate's error, mm", [1000 * s["position_error_now_m"]
+                                                 for s in steps])]
+    times = [s["t"] for s in steps]
+    span = max(times[-1], 1e-3) if times else 1.0
+    left, right = 50, 12
+    out = []
+    for k, (name, values) in enumerate(series):
+        canvas = np.full((panel, width, 3), 255, np.uint8)
+        later = values[1:] or values
+        top = _nice(max(np.percentile(later, 99) * 1.15, 1e-6)) if later else 1.0
+        inner = panel - 28
+
+        def at(t: float, v: float, top=top, inner=inner) -> tuple[int, int]:
+            return (round(left + t / span * (width - left - right)),
+                    round(8 + inner * (1 - min(max(v / top, 0.0), 1.0))))
+
+        cv2.line(canvas, (left, 8), (left, 8 + inner), GREY, 1)
+        cv2.line(canvas, (left, 8 + inner), (width - right, 8 + inner), GREY, 1)
+        if len(values) > 1:
+            cv2.polylines(canvas, [np.array([at(t, v) for t, v in zip(times, values)],
+                                            np.int32)], False, (RED, BLUE, GREEN)[k], 1,
+                          cv2.LINE_AA)
+        cv2.putText(canvas, f"{top:g}", (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.4, BLACK, 1,
+                    cv2.LINE_AA)
+        cv2.putText(canvas, "0", (30, 8 + inner + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, BLACK,
+                    1, cv2.LINE_AA)
+        cv2.putText(canvas, name, (left + 8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, BLACK, 1,
+                    cv2.LINE_AA)
+        for second in range(int(span) + 1):
+            x = at(second, 0)[0]
+            cv2.line(canvas, (x, 8 + inner), (x, 8 + inner + 4), GREY, 1)
+            if k == len(series) - 1:
+                cv2.putText(canvas, f"{second} s" if second else "0", (x - 6, panel - 4),
+                            cv2.FONT_HERSHEY_SIMPLEX, 0.38, BLACK, 1, cv2.LINE_AA)
+        out.append(canvas)
+    return np.vstack(out)
+
+
+def _nice(value: float) -> float:
+    """The next of 1, 2, 5 times a power of ten at or above ``value``."""
+    power = 10 ** math.floor(math.log10(value))
+    return next(m * power for m in (1, 2, 5, 10) if m * power >= value)

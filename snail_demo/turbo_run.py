@@ -14,7 +14,7 @@ import numpy as np
 from snail_client.api import Localizer
 from snail_client.progress import bar
 
-from .draw import frame, top_down
+from .draw import frame, realtime_plot, top_down
 from .render import Look
 from .turbo import START, TARGET, RobotPose, drive, robot_camera, room, summary
 from .turbo_realtime import RealtimeRun, drive_realtime, summary_realtime
@@ -106,7 +106,7 @@ def run_turbo_realtime(out: Path, backend: str, speed: float, camera_fps: float,
     write_gif(out / "turbo.gif", pictures[::-every][::-1], GIF_FPS, GIF_WIDTH)
     cv2.imwrite(str(out / "first_frame.png"), pictures[0])
     cv2.imwrite(str(out / "last_frame.png"), pictures[-1])
-    cv2.imwrite(str(out / "trajectory.png"), top_down(run, TARGET, tagmap, 720))
+    cv2.imwrite(str(out / "trajectory.png"), realtime_plot(run, TARGET, tagmap, 720))
     (out / "turbo.json").write_text(json.dumps({"steps": run.steps, "final": final},
                                                indent=1) + "\n")
     return final

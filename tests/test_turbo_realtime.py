@@ -197,7 +197,7 @@ def test_a_realtime_run_writes_log_video_animation_and_plot(tmp_path):
         ok, animation = cv2.imreadanimation(str(tmp_path / "turbo.gif"))
         assert ok and len(animation.frames) == pytest.approx(frames / 2, abs=1)
         assert animation.frames[0].shape[1] == 720
-    assert cv2.imread(str(tmp_path / "trajectory.png")).shape == (720, 720, 3)
+    assert cv2.imread(str(tmp_path / "trajectory.png")).shape == (720 + 300, 720, 3)
 
 
 @pytest.mark.parametrize(("args", "message"), [
