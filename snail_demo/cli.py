@@ -112,7 +112,10 @@ def turbo(out_dir: str, backend: str, realtime: bool, speed: float | None,
 
     Step by step (the paper's way): the robot moves at most 0.1 m, stops, takes an image
     and localizes it privately (padded to --min-invocations runs), then moves again.
-    With --realtime it drives continuously (see --realtime).
+    With --realtime it drives continuously (see --realtime); measured 2026-12-04 on two
+    shared cores, garbled on loopback, --speed 0.3: at the target within 0.4 cm and 0.35
+    degrees after 7 s of driving, 15-16 private poses a second, 74-80 ms from a frame's
+    capture to its pose (p50; docs/images.md).
 
     Writes DIR/turbo.json (one record per control step or frame and the final errors;
     with --realtime the summary adds speed_mps, fps and latency_s, capture to pose),
