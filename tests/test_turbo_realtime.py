@@ -1,0 +1,219 @@
+"""Turbo in real time: the robot on the clock, a late pose carried to where the robot is
+now, the controller in closed loop, and whole runs on the wall clock (cleartext backend:
+the same circuits as the servers', the loop and its timing are under test; the garbled
+path is the same ``Localizer.track``, measured in docs/images.md)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import time
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from snail_client.api import Localizer
+from snail_demo.cli import main as demo
+from snail_demo.render import Look
+from snail_demo.turbo_realtime import drive_realtime, summary_realtime
+from snail_demo.turbo_run import MAX_TAGS, run_turbo_realtime
+from snail_sim.realtime import Robot, Servo, arc, carried
+from snail_sim.turbo_world import TARGET, RobotPose, robot_camera, room
+
+NEAR = RobotPose(1.15, 0.05, math.radians(20))  # 0.49 m from the target: a short drive
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _distance(a: RobotPose, b: RobotPose) -> float:
+    return math.hypot(a.x - b.x, a.y - b.y)
+
+
+def test_the_robot_moves_with_its_clock_and_its_wheels_slip():
+    clock = FakeClock()
+    robot = Robot(RobotPose(0.0, 0.0, 0.0), np.random.default_rng(1), clock)
+    robot.command(0.3, 0.0)
+    clock.t += 1.0
+    assert robot.odometry_at(clock.t) == pytest.approx(RobotPose(0.3, 0.0, 0.0))
+    true = robot.true_at(clock.t)
+    assert 0.2 < true.x < 0.4 and true.x != pytest.approx(0.3, abs=1e-6)  # slip
+    robot.command(0.0, math.radians(90))
+    clock.t += 1.0
+    assert robot.odometry_at(clock.t).heading == pytest.approx(math.radians(90))
+    assert robot.odometry_at(clock.t).x == pytest.approx(0.3)  # turned in place
+    assert robot.odometry_at(100.5).x == pytest.approx(0.15)  # the past stays answerable
+    with pytest.raises(ValueError, match="before the robot started"):
+        robot.true_at(99.0)
+
+
+def test_an_arc_is_exact():
+    pose = arc(RobotPose(0.0, 0.0, 0.0), 0.5, math.pi / 2, 1.0)  # a quarter circle
+    radius = 0.5 / (math.pi / 2)
+    assert (pose.x, pose.y) == pytest.approx((radius, radius))
+    assert pose.heading == pytest.approx(math.pi / 2)
+
+
+def test_a_late_pose_is_carried_to_where_the_robot_is_now():
+    """A pose of the robot at capture, 0.25 s late: odometry since moves it to where the
+    robot is now (7.5 cm on), not where it was."""
+    clock = FakeClock()
+    robot = Robot(RobotPose(0.4, -0.3, math.radians(30)), np.random.default_rng(2), clock,
+                  slip=0.0)
+    robot.command(0.3, math.radians(20))
+    clock.t += 0.5
+    captured = clock.t
+    seen = robot.true_at(captured)  # what the frame's pose says
+    clock.t += 0.25
+    now = robot.true_at(clock.t)
+    carried_now = carried(seen, robot.odometry_at(captured), robot.odometry_at(clock.t))
+    assert _distance(seen, now) == pytest.approx(0.075, rel=0.01)
+    assert _distance(carried_now, now) < 1e-9
+    assert carried_now.heading == pytest.approx(now.heading)
+    # an estimate off by 1 cm sideways stays 1 cm off, carried along the robot's own frame
+    off = RobotPose(seen.x - 0.01 * math.sin(seen.heading),
+                    seen.y + 0.01 * math.cos(seen.heading), seen.heading)
+    moved = carried(off, robot.odometry_at(captured), robot.odometry_at(clock.t))
+    assert _distance(moved, now) == pytest.approx(0.01, abs=1e-4)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_servo_reaches_the_target_on_late_noisy_poses(seed):
+    """The controller alone, on a clock of its own: poses 0.1 s late, 2 mm and 0.2 degrees
+    of noise, wheels slipping; it ends within 1 cm and 1 degree, cruising at its speed."""
+    rng = np.random.default_rng(seed)
+    clock = FakeClock()
+    robot = Robot(RobotPose(0.35, -0.55, math.radians(35)), rng, clock)
+    servo = Servo(TARGET, 0.3)
+    speeds = []
+    while not servo.arrived and clock.t < 130:
+        clock.t += 0.06
+        captured = clock.t - 0.1
+        true = robot.true_at(max(captured, robot.started))
+        seen = RobotPose(true.x + rng.normal(scale=0.002), true.y + rng.normal(scale=0.002),
+                         true.heading + rng.normal(scale=math.radians(0.2)))
+        v, w = servo(carried(seen, robot.odometry_at(max(captured, robot.started)),
+                             robot.odometry_at(clock.t)))
+        robot.command(v, w)
+        speeds.append(v)
+    end = robot.true_at(clock.t)
+    assert servo.arrived and clock.t < 115
+    assert _distance(end, TARGET) < 0.01
+    assert abs(math.degrees(end.heading - TARGET.heading)) < 1.0
+    assert max(speeds) == pytest.approx(0.3)
+
+
+@pytest.fixture(scope="module")
+def late_run():
+    """A real-time drive on the wall clock whose every secure run takes 0.12 s more: each
+    pose arrives long after its frame was captured, while the robot drives on."""
+    with Localizer(camera=robot_camera(), tag_map=room(), backend="cleartext",
+                   max_tags=MAX_TAGS, pad_points=4 * MAX_TAGS, in_flight=1) as loc:
+        run_once = loc.backend._run
+
+        def slow(spec, values):
+            time.sleep(0.12)
+            return run_once(spec, values)
+
+        loc.backend._run = slow
+        began = time.monotonic()
+        run = drive_realtime(loc, NEAR, TARGET, 0.3, 30.0, 30.0, np.random.default_rng(5),
+                             Look(blur_px=0.8, noise=3.0, background=120))
+        wall = time.monotonic() - began
+    return run, wall
+
+
+def test_the_realtime_loop_advances_with_the_clock_and_reaches_the_target(late_run):
+    run, wall = late_run
+    final = summary_realtime(run, TARGET, 0.3, 30.0)
+    assert final["reached"], final
+    assert final["position_error_m"] <= 0.01 and final["rotation_error_deg"] <= 1.0
+    steps = run.steps
+    assert all(s["status"] in ("converged", "tracked") for s in steps)
+    assert [s["runs"] for s in steps[1:]] == [1] * (len(steps) - 1)
+    # the drive took the wall-clock time its path needs at 0.3 m/s, and more
+    assert wall >= final["path_m"] / 0.3 > 0.4 / 0.3
+    # frames come on the camera's ticks; slow poses skip ticks, the camera does not wait
+    for s in steps:
+        assert s["t_capture"] == pytest.approx(s["tick"] / 30.0, abs=2e-3)
+        assert s["latency_s"] > 0.12
+    assert all(b["tick"] - a["tick"] >= 4 for a, b in itertools.pairwise(steps[1:]))
+    # the robot drove on while each pose was computed: at cruising speed, 0.3 m/s times
+    # the pose's latency (the wheels slip a few per cent)
+    cruising = [b for a, b, c in zip(steps, steps[1:], steps[2:])
+                if a["command"]["speed_mps"] == b["command"]["speed_mps"] == 0.3
+                and c["phase"] == "drive"]
+    assert len(cruising) >= 3
+    for s in cruising:
+        moved = math.hypot(s["robot_true_now"][0] - s["robot_true"][0],
+                           s["robot_true_now"][1] - s["robot_true"][1])
+        assert moved / (0.3 * s["latency_s"]) == pytest.approx(1.0, abs=0.12)
+
+
+def test_a_late_pose_steers_from_where_the_robot_is_now(late_run):
+    run, _ = late_run
+    for s in run.steps[1:]:
+        now_true, now_estimate = s["robot_true_now"], s["robot_estimate_now"]
+        at_capture = s["robot_estimate"]
+        assert math.dist(now_estimate[:2], now_true[:2]) < 0.012
+        if s["command"]["speed_mps"] == 0.3:  # the capture's pose is centimetres behind
+            assert math.dist(at_capture[:2], now_true[:2]) > 0.035
+    # and the command is the controller's on that estimate (far from the target, where
+    # the controller has no memory: its drive phase)
+    far = [s for s in run.steps if math.dist(s["robot_estimate_now"][:2],
+                                             [TARGET.x, TARGET.y]) > 0.05]
+    assert far
+    for s in far:
+        x, y, heading = s["robot_estimate_now"]
+        v, w = Servo(TARGET, 0.3)(RobotPose(x, y, math.radians(heading)))
+        assert (v, math.degrees(w)) == pytest.approx(
+            (s["command"]["speed_mps"], s["command"]["turn_deg_s"]))
+
+
+def test_a_realtime_run_writes_log_video_animation_and_plot(tmp_path):
+    final = run_turbo_realtime(tmp_path, "cleartext", 0.3, 30.0, 20.0, 20, 1, 4, quiet=True,
+                               start=NEAR)
+    assert final["reached"] and final["position_error_m"] <= 0.01
+    log = json.loads((tmp_path / "turbo.json").read_text())
+    assert log["final"] == final
+    assert final["speed_mps"] == 0.3 and final["fps"] > 3
+    assert 0 < final["latency_s"]["p50"] <= final["latency_s"]["p95"] <= final["latency_s"]["max"]
+    assert final["runs_after_first"] == [1] and final["revealed"] == 0
+    for step in log["steps"]:
+        assert {"t", "true", "estimate", "iterations", "invocations", "seconds", "bytes",
+                "client_cpu_s", "latency_s", "robot_true_now", "robot_estimate_now"} <= step.keys()
+    video = cv2.VideoCapture(str(tmp_path / "turbo.mp4"))
+    frames = int(video.get(cv2.CAP_PROP_FRAME_COUNT))
+    assert frames >= final["drive_s"] * 10 * 0.8  # ten a second of the drive
+    if hasattr(cv2, "imreadanimation"):
+        ok, animation = cv2.imreadanimation(str(tmp_path / "turbo.gif"))
+        assert ok and len(animation.frames) == pytest.approx(frames / 2, abs=1)
+        assert animation.frames[0].shape[1] == 720
+    assert cv2.imread(str(tmp_path / "trajectory.png")).shape == (720 + 300, 720, 3)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--speed", "0.3"], "--speed: only with --realtime"),
+    (["--camera-fps", "10"], "--camera-fps: only with --realtime"),
+    (["--realtime", "--max-steps", "5"], "--max-steps: not with --realtime"),
+    (["--realtime", "--link-delay-ms", "5"], "--link-delay-ms: not with --realtime"),
+])
+def test_realtime_flags_go_with_realtime(args, message):
+    out = CliRunner().invoke(demo, ["turbo", "--out", "x", *args])
+    assert out.exit_code == 2 and message in out.output
+
+
+def test_help_explains_the_realtime_flags():
+    out = CliRunner().invoke(demo, ["turbo", "--help"])
+    assert out.exit_code == 0
+    for flag in ("--realtime", "--speed", "--camera-fps", "--max-seconds", "--runs-per-frame"):
+        assert flag in out.output
+    assert "wall clock" in out.output and "odometry" in out.output
