@@ -214,17 +214,19 @@ def _idle_before(monitor: SecureRunner, pids: dict[str, int]) -> dict:
 def _until_idle(monitor: SecureRunner, pids: dict[str, int], before: dict,
                 limit: float) -> dict:
     """Once every client is gone: wait (up to ``limit`` seconds) until no session is under
-    way, nothing is buffered and each daemon's fds are back within 10 % of ``before``,
-    and report each daemon's state then. A session or descriptor still held after its
-    clients left would be a leak."""
+    way, nothing is buffered and each daemon's fds and RSS are back within 10 % of
+    ``before`` (an idle daemon sweeps its memory a moment after its last session and
+    connection end), and report each daemon's state then. A session, descriptor or
+    buffer still held after its clients left would be a leak."""
     t0 = time.monotonic()
     while True:
         state = _state(monitor, pids)
         idle = all(v["sessions"] == 0 and v["queued_mb"] == 0 for v in state.values())
-        back = all(state[role]["fds"] is not None and within(
-            state[role]["fds"], before[role]["fds"]) for role in ROLES)
-        if (idle and back) or time.monotonic() - t0 > limit:
-            return {"idle": idle, "fds_back": back,
+        back = {what: all(state[role][what] is not None and within(
+            state[role][what], before[role][what]) for role in ROLES)
+            for what in ("fds", "rss_mb")}
+        if (idle and all(back.values())) or time.monotonic() - t0 > limit:
+            return {"idle": idle, "fds_back": back["fds"], "rss_back": back["rss_mb"],
                     "seconds": round(time.monotonic() - t0, 1), **state}
         time.sleep(0.5)
 
