@@ -52,12 +52,21 @@ def plot_soak(soak: dict, path: Path) -> Path:
                         linestyle="--", linewidth=0.8, **style)
     for ax in (ax_rss, ax_fds):  # after this, clients only finish their last frame
         ax.axvline(soak["minutes"], color="grey", linestyle=":", label="end")
+    after = soak.get("after_clients_left", {})
+    t_after = (soak["elapsed_s"] + after.get("seconds", 0.0)) / 60
+    for role, rest in soak.get("idle_before", {}).items():  # at rest, and once idle again
+        style = ROLE_STYLE.get(role, {})
+        for ax, what in ((ax_rss, "rss_mb"), (ax_fds, "fds")):
+            ax.axhline(rest[what], linestyle=":", linewidth=0.8, **style)
+            if after.get(role, {}).get(what) is not None:
+                ax.plot([t_after], [after[role][what]], marker="o", markersize=4, **style)
     ax_rss.set_ylabel("MB")
     ax_rss.set_ylim(bottom=0)
     ax_fds.set_ylabel("open fds, sessions under way")
     ax_fds.set_ylim(bottom=0)
     verdict = {True: "flat", False: "NOT flat", None: "too short to judge"}[soak["flat"]]
-    ax_rss.set_title(f"footprint: {verdict} (last minute vs second, 10 %)", fontsize=9)
+    ax_rss.set_title(f"footprint: {verdict} (dotted: at rest before; dot: after the "
+                     f"clients left; 10 %)", fontsize=9)
     for ax in (ax_rss, ax_fds):
         ax.set_xlabel("minutes")
         ax.legend(fontsize=7)
