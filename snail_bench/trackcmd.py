@@ -46,8 +46,10 @@ PROFILES = ("lan", "paper", "region", "continent")
               help="The map-owner setting: the hand-held room's M points held by a "
                    "snail-mapd on loopback, each frame's points selected from them by OT.")
 @click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm",
-              show_default=True, help="The step each run makes.")
-@click.option("--motion-model", type=click.Choice(MOTION_MODELS), default="none",
+              show_default=True, help="The padded first frame's algorithm.")
+@click.option("--step", type=click.Choice(["gn", "lm"]), default="gn", show_default=True,
+              help="The step each later run makes (the tracker's --step).")
+@click.option("--motion-model", type=click.Choice(MOTION_MODELS), default="auto",
               show_default=True, help="The tracker's prediction.")
 @click.option("--odometry", is_flag=True,
               help="Turbo only: pass its wheel odometry (3 % slip) as the tracker's motion.")
@@ -70,9 +72,9 @@ PROFILES = ("lan", "paper", "region", "continent")
               help="Keep each entry's per-frame rows in the JSON (what --figure draws).")
 def track(points: tuple[int, ...], frames: int, sequence: str, runs_per_frame: int,
           in_flight: int | None, feed_fps: float | None, rate: float | None,
-          profile: str | None, map_points: int | None, algorithm: str, motion_model: str,
-          odometry: bool, backend: str, scheme: str, seed: int, figure: str | None,
-          garbler: str | None, evaluator: str | None, tls_dir: str | None,
+          profile: str | None, map_points: int | None, algorithm: str, step: str,
+          motion_model: str, odometry: bool, backend: str, scheme: str, seed: int,
+          figure: str | None, garbler: str | None, evaluator: str | None, tls_dir: str | None,
           as_json: bool, per_frame: bool) -> None:
     """Follow a made-up camera privately at its rate: frames/s, latency (frame handed in
     to pose out) and every frame's pose against OpenCV's converged solvePnP.
@@ -92,8 +94,9 @@ def track(points: tuple[int, ...], frames: int, sequence: str, runs_per_frame: i
     if profile and (garbler or backend != "garbled"):
         raise click.UsageError("--profile runs its own daemons in the lab, garbled")
     try:
-        options = Options(backend=backend, algorithm=algorithm, runs_per_frame=runs_per_frame,
-                          in_flight=in_flight, rate=rate, motion_model=motion_model,
+        options = Options(backend=backend, algorithm=algorithm, step=step,
+                          runs_per_frame=runs_per_frame, in_flight=in_flight, rate=rate,
+                          motion_model=motion_model,
                           scheme=scheme, garbler=garbler, evaluator=evaluator, tls_dir=tls_dir,
                           **({"solve": "circuit"} if map_points else {}))
     except ValueError as e:

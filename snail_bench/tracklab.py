@@ -64,7 +64,8 @@ def _flags(points: tuple[int, ...], frames: int, sequence: str, options: Options
     """The same measurement's flags for the run inside the lab."""
     flags = [*(arg for n in points for arg in ("--points", str(n))), "--frames", str(frames),
              "--sequence", sequence, "--runs-per-frame", str(options.runs_per_frame),
-             "--algorithm", options.algorithm, "--motion-model", options.motion_model,
+             "--algorithm", options.algorithm, "--step", options.step,
+             "--motion-model", options.motion_model,
              "--scheme", options.scheme, "--seed", str(seed)]
     for flag, value in (("--in-flight", options.in_flight), ("--rate", options.rate),
                         ("--feed-fps", feed_fps)):

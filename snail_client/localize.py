@@ -66,7 +66,7 @@ class Options(PipelineOptions):
     in_flight: int | None = None  # frames whose runs overlap; None: from the round trip
     rate: float | None = None  # secure runs per second whatever the frames
     on_lost: str = "wait"
-    motion_model: str = "none"
+    motion_model: str = "auto"
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -71,10 +71,18 @@ def _tracking_options(fn):
                           "answer while it improves; reveal gives the next frame a padded "
                           "localization, which the servers can tell (its record says "
                           "revealed)."),
-        click.option("--motion-model", type=click.Choice(MOTION_MODELS), default="none",
+        click.option("--step", type=click.Choice(["gn", "lm"]), default="gn",
                      show_default=True,
-                     help="Predict each frame from the last trusted pose (none) or move it "
-                          "by the last two frames' motion (constant-velocity)."),
+                     help="What each of a frame's K runs steps by: Gauss-Newton, or LM "
+                          "(damped: from a nearby prediction its one step falls short; "
+                          "--algorithm is the padded first frame's)."),
+        click.option("--motion-model", type=click.Choice(MOTION_MODELS), default="auto",
+                     show_default=True,
+                     help="Predict each frame from the last trusted pose (none), move it "
+                          "by the last two frames' motion (constant-velocity), or take "
+                          "whichever of the two has been nearer the stream's recent answers "
+                          "(auto). Your own choice, from your own answers: the servers see "
+                          "the same runs."),
     ]
     for decorate in reversed(decorators):
         fn = decorate(fn)
@@ -97,8 +105,8 @@ def _tracking_options(fn):
 @_options
 def track_cmd(input_path: str | None, as_json: bool, output: str | None, fail_fast: bool,
               map_owner: str | None, map_path: str | None, runs_per_frame: int,
-              in_flight: int | None, rate: float | None, on_lost: str, motion_model: str,
-              **kw) -> None:
+              in_flight: int | None, rate: float | None, on_lost: str, step: str,
+              motion_model: str, **kw) -> None:
     """Follow a sequence privately: the first frame padded, every later one exactly
     --runs-per-frame secure runs from the last trusted pose.
 
@@ -111,7 +119,7 @@ def track_cmd(input_path: str | None, as_json: bool, output: str | None, fail_fa
     try:
         options = dataclasses.replace(_make_options(kw), runs_per_frame=runs_per_frame,
                                       in_flight=in_flight, rate=rate, on_lost=on_lost,
-                                      motion_model=motion_model)
+                                      step=step, motion_model=motion_model)
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     owner = bool(map_owner or map_path)

@@ -75,6 +75,39 @@ def test_odometry_and_constant_velocity_move_the_prediction():
     assert _same(model.plan(2).start, compose(STEP, B))  # the last frames' motion again
 
 
+def _followed(schedule: Schedule, poses: list[PoseVectors]) -> list[PoseVectors]:
+    """Each frame's planned start, every answer trusted and equal to ``poses``."""
+    starts = []
+    for index, pose in enumerate(poses):
+        plan = schedule.plan(index)
+        starts.append(plan.start)
+        schedule.observe(plan, _trusted(pose, runs=20 if index == 0 else 1))
+    return starts
+
+
+def test_auto_extrapolates_a_steady_motion_once_it_has_predicted_better():
+    """A camera moving by STEP every frame: the last pose is one STEP behind each answer,
+    constant velocity on it exactly; after a few trusted frames auto moves the
+    prediction and then starts on the answer."""
+    poses = [A]
+    for _ in range(8):
+        poses.append(compose(STEP, poses[-1]))
+    starts = _followed(Schedule(runs_per_frame=1), poses)
+    assert _same(starts[2], poses[1])  # no vote yet: the last trusted pose
+    assert all(_same(start, pose) for start, pose in zip(starts[4:], poses[4:]))
+
+
+def test_auto_keeps_the_last_pose_when_the_motion_jitters():
+    """A camera shaking back and forth about A: the last frames' motion points the wrong
+    way every time, so auto never extrapolates it (constant-velocity does)."""
+    poses = [A if i % 2 == 0 else compose(STEP, A) for i in range(10)]
+    auto = _followed(Schedule(runs_per_frame=1), poses)
+    assert all(_same(start, pose) for start, pose in zip(auto[1:], poses[:-1]))
+    forced = _followed(Schedule(runs_per_frame=1, motion_model="constant-velocity"), poses)
+    assert not _same(forced[3], poses[2])
+    assert _same(forced[3], compose(relative(poses[1], poses[2]), poses[2]))
+
+
 def test_a_lost_frame_keeps_its_k_runs_and_restarts_from_its_answer_if_it_improved():
     schedule = Schedule(runs_per_frame=1, min_invocations=20)
     schedule.observe(schedule.plan(0), _trusted(A, runs=20))

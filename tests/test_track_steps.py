@@ -129,3 +129,25 @@ def test_do_mode_has_no_fixed_steps():
     with pytest.raises(ValueError, match="--mode do"):
         refine_fixed(problem, Options(mode="do", solve="circuit"), Float64Backend(),
                      problem.initial_pose, 1)
+
+
+@pytest.mark.parametrize("solve", ["client", "circuit"])
+def test_a_tracked_frame_steps_by_gauss_newton_unless_told_lm(solve):
+    """The default step is undamped (a circuit that solves takes lambda 0: the map-owner
+    frames); LM's damping, even at its lightest start, stops short of it."""
+    problem = _scene(4, n=6)
+    nrm, frame = normalize(problem)
+    pose0 = frame.to_normalized(pose_from_rvec_tvec(problem.initial_pose.rvec,
+                                                    problem.initial_pose.tvec))
+    want = frame.to_original(apply_step(pose0, iteration_float64(nrm, pose0, 0.0).step))
+    results = {step: refine_fixed(problem, Options(step=step, solve=solve), Float64Backend(),
+                                  problem.initial_pose, 1) for step in ("gn", "lm")}
+    assert np.allclose(so3_exp(results["gn"].rvec), want.R, atol=1e-9)
+    assert np.allclose(results["gn"].tvec, want.t, atol=1e-9)
+    assert Options().step == "gn"
+    assert not np.allclose(results["lm"].tvec, want.t, atol=1e-9)
+
+
+def test_an_unknown_step_is_named():
+    with pytest.raises(ValueError, match="--step"):
+        Options(step="newton")

@@ -34,13 +34,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from .geometry import rvec_from_matrix, so3_exp
 from .problem import PoseVectors
 
 INITIALIZING, TRACKING, LOST = "initializing", "tracking", "lost"
 RELOCALIZED = "relocalized"  # a frame's track status: trusted again after lost frames
 ON_LOST = ("wait", "reveal")
-MOTION_MODELS = ("none", "constant-velocity")
+MOTION_MODELS = ("auto", "none", "constant-velocity")
+VOTE_MEMORY = 0.8  # auto: the weight of the past frames' votes against the newest one
 MAX_LAG = 64  # frames in flight at most (states kept for plans of later frames)
 
 
@@ -71,12 +74,14 @@ class Outcome:
 @dataclass(frozen=True)
 class _State:
     """What a prediction is made from: the state, the last trusted (frame, pose), the
-    lost answer worth keeping, and the motion between the last two trusted frames."""
+    lost answer worth keeping, the motion between the last two trusted frames and whether
+    a prediction moves by it."""
 
     state: str
     anchor: tuple[int, PoseVectors] | None
     lost_at: tuple[int, PoseVectors] | None
     velocity: PoseVectors | None
+    extrapolate: bool
 
 
 @dataclass(frozen=True)
@@ -103,7 +108,7 @@ class Schedule:
     """The state machine; see the module docstring."""
 
     def __init__(self, runs_per_frame: int = 1, min_invocations: int = 20,
-                 on_lost: str = "wait", motion_model: str = "none") -> None:
+                 on_lost: str = "wait", motion_model: str = "auto") -> None:
         if runs_per_frame < 0:
             raise ValueError(f"--runs-per-frame: must not be negative, got {runs_per_frame}")
         if on_lost not in ON_LOST:
@@ -118,6 +123,7 @@ class Schedule:
         self._anchor: tuple[int, PoseVectors] | None = None  # last trusted (frame, pose)
         self._lost_at: tuple[int, PoseVectors] | None = None  # a lost answer worth keeping
         self._velocity: PoseVectors | None = None
+        self._vote = 0.0  # auto: > 0 while constant velocity predicted better, recently
         self._motions: dict[int, PoseVectors | None] = {}
         self._seen: dict[int, _State] = {}  # the state once each recent frame was observed
         self._first: int | None = None  # the first frame observed
@@ -155,7 +161,7 @@ class Schedule:
         at, pose = base
         for frame in range(at + 1, index + 1):
             motion = self._motions.get(frame)
-            if motion is None and self.motion_model == "constant-velocity":
+            if motion is None and state.extrapolate:
                 motion = state.velocity
             if motion is not None:
                 pose = compose(motion, pose)
@@ -169,7 +175,9 @@ class Schedule:
         return self._seen.get(max(index, self._first)) or self._now()
 
     def _now(self) -> _State:
-        return _State(self.state, self._anchor, self._lost_at, self._velocity)
+        extrapolate = (self.motion_model == "constant-velocity"
+                       or (self.motion_model == "auto" and self._vote > 0))
+        return _State(self.state, self._anchor, self._lost_at, self._velocity, extrapolate)
 
     def observe(self, plan: Plan, outcome: Outcome) -> Observed:
         """Take frame ``plan.index``'s outcome (in frame order): the new state, and the
@@ -198,7 +206,11 @@ class Schedule:
         return Observed(status, revealed)
 
     def _trusted(self, index: int, pose: PoseVectors) -> None:
-        if self._anchor is not None and self._anchor[0] == index - 1:
+        consecutive = self._anchor is not None and self._anchor[0] == index - 1
+        if consecutive and self._velocity is not None and self._motions.get(index) is None:
+            self._vote = VOTE_MEMORY * self._vote + (1 - VOTE_MEMORY) * _vote(
+                self._anchor[1], compose(self._velocity, self._anchor[1]), pose)
+        if consecutive:
             self._velocity = relative(self._anchor[1], pose)
         else:
             self._velocity = None  # not consecutive: no per-frame motion to take
@@ -215,3 +227,24 @@ class Schedule:
             oldest = min(bases)
             for frame in [f for f in self._motions if f <= oldest]:
                 del self._motions[frame]
+
+
+def _vote(still: PoseVectors, moved: PoseVectors, answer: PoseVectors) -> float:
+    """+1 when the constant-velocity prediction ``moved`` was nearer the answer than the
+    last pose ``still`` in both rotation and translation, -1 when farther in both, else 0
+    (the two are in different units: no weighting of one against the other is needed)."""
+    def apart(a: PoseVectors) -> tuple[float, float]:
+        turn = float(np.linalg.norm(relative(a, answer).rvec))
+        return turn, float(np.linalg.norm(_centre(a) - _centre(answer)))
+
+    (rot_still, move_still), (rot_moved, move_moved) = apart(still), apart(moved)
+    if rot_moved < rot_still and move_moved < move_still:
+        return 1.0
+    if rot_moved > rot_still and move_moved > move_still:
+        return -1.0
+    return 0.0
+
+
+def _centre(pose: PoseVectors) -> np.ndarray:
+    """The camera's centre in the world."""
+    return -so3_exp(pose.rvec).T @ pose.tvec
