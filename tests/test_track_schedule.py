@@ -108,6 +108,26 @@ def test_auto_keeps_the_last_pose_when_the_motion_jitters():
     assert _same(forced[3], compose(relative(poses[1], poses[2]), poses[2]))
 
 
+def test_lost_answers_that_improved_carry_the_motion_on():
+    """The map-owner device with one run a frame judges only the prediction's fit: its
+    first tracked frames, predicted before any motion is known, come out lost though
+    their answers are right. Those answers still give the motion, so the prediction soon
+    moves with the camera and the track is trusted again."""
+    poses = [A]
+    for _ in range(6):
+        poses.append(compose(STEP, poses[-1]))
+    schedule = Schedule(runs_per_frame=1)
+    schedule.observe(schedule.plan(0), _trusted(poses[0], runs=20))
+    for index in (1, 2):
+        schedule.observe(schedule.plan(index),
+                         Outcome(False, poses[index], 1, CIRCUIT, improved=True))
+    plan = schedule.plan(3)
+    assert _same(plan.start, poses[3])  # moved by the motion of the lost answers
+    assert schedule.observe(plan, _trusted(poses[3])).track_status == RELOCALIZED
+    schedule.observe(schedule.plan(4), Outcome(False, poses[0], 1, CIRCUIT, improved=False))
+    assert _same(schedule.plan(5).start, poses[3])  # it went nowhere: no motion to trust
+
+
 def test_a_lost_frame_keeps_its_k_runs_and_restarts_from_its_answer_if_it_improved():
     schedule = Schedule(runs_per_frame=1, min_invocations=20)
     schedule.observe(schedule.plan(0), _trusted(A, runs=20))

@@ -74,8 +74,8 @@ class Outcome:
 @dataclass(frozen=True)
 class _State:
     """What a prediction is made from: the state, the last trusted (frame, pose), the
-    lost answer worth keeping, the motion between the last two trusted frames and whether
-    a prediction moves by it."""
+    lost answer worth keeping, the motion between the last two answers to go on from and
+    whether a prediction moves by it."""
 
     state: str
     anchor: tuple[int, PoseVectors] | None
@@ -122,7 +122,8 @@ class Schedule:
         self.circuit: str | None = None  # the schedule's circuit: the first frame's
         self._anchor: tuple[int, PoseVectors] | None = None  # last trusted (frame, pose)
         self._lost_at: tuple[int, PoseVectors] | None = None  # a lost answer worth keeping
-        self._velocity: PoseVectors | None = None
+        self._velocity: PoseVectors | None = None  # between the last two answers to go on from
+        self._last: tuple[int, PoseVectors] | None = None  # the last answer to go on from
         self._vote = 0.0  # auto: > 0 while constant velocity predicted better, recently
         self._motions: dict[int, PoseVectors | None] = {}
         self._seen: dict[int, _State] = {}  # the state once each recent frame was observed
@@ -191,13 +192,16 @@ class Schedule:
         revealed = plan.revealed or other_circuit or other_count
         was_lost = self.state == LOST
         if outcome.trusted and outcome.pose is not None:
-            self._trusted(plan.index, outcome.pose)
+            self._moved(plan.index, outcome.pose)
+            self._anchor, self._lost_at, self.state = (plan.index, outcome.pose), None, TRACKING
             status = RELOCALIZED if was_lost else TRACKING
         else:
             if outcome.pose is not None and outcome.improved:
+                self._moved(plan.index, outcome.pose)
                 self._lost_at = (plan.index, outcome.pose)
             elif outcome.pose is not None:
                 self._lost_at = None  # it went nowhere: back to the last trusted pose
+                self._last = self._velocity = None
             self.state, status = LOST, LOST
         if self._first is None:
             self._first = plan.index
@@ -205,16 +209,20 @@ class Schedule:
         self._forget(plan.index)
         return Observed(status, revealed)
 
-    def _trusted(self, index: int, pose: PoseVectors) -> None:
-        consecutive = self._anchor is not None and self._anchor[0] == index - 1
+    def _moved(self, index: int, pose: PoseVectors) -> None:
+        """An answer to go on from (trusted, or lost but better than its start): the
+        motion since the one before when consecutive, and auto's vote on the prediction
+        that motion would have made. A map-owner device with one run a frame judges only
+        the prediction's fit, so its first tracked frames, predicted without a motion
+        yet, may come out lost: their answers still carry the motion on."""
+        last = self._last
+        consecutive = last is not None and last[0] == index - 1
         if consecutive and self._velocity is not None and self._motions.get(index) is None:
             self._vote = VOTE_MEMORY * self._vote + (1 - VOTE_MEMORY) * _vote(
-                self._anchor[1], compose(self._velocity, self._anchor[1]), pose)
-        if consecutive:
-            self._velocity = relative(self._anchor[1], pose)
-        else:
-            self._velocity = None  # not consecutive: no per-frame motion to take
-        self._anchor, self._lost_at, self.state = (index, pose), None, TRACKING
+                last[1], compose(self._velocity, last[1]), pose)
+        # not consecutive: no per-frame motion to take
+        self._velocity = relative(last[1], pose) if consecutive else None
+        self._last = (index, pose)
 
     def _forget(self, index: int) -> None:
         """Drop the states no plan will ask for again (frames in flight are at most
