@@ -118,10 +118,15 @@ def compare(problem: Problem, tracked: PoseVectors, opencv: PoseVectors) -> dict
     rms_cv = reprojection_rms(problem, opencv.rvec, opencv.tvec)
     err = pose_error(tracked.rvec, tracked.tvec, opencv)
     depth = problem.points3d @ cv2.Rodrigues(opencv.rvec)[0].T + opencv.tvec
+    truth = problem.reference_pose
     return {"rms": rms, "rms_opencv": rms_cv, "rms_ratio": rms / rms_cv if rms_cv else math.inf,
             "within": rms <= rms_cv + max(WITHIN_PX, WITHIN_REL * rms_cv),
             "deg": err["rotation_deg"],
-            "rel": err["translation"] / float(np.median(depth[:, 2]))}
+            "rel": err["translation"] / float(np.median(depth[:, 2])),
+            # how far each is from the made-up camera's true pose: where OpenCV's own pose
+            # is far from it (one small tag in view), agreeing with OpenCV means little
+            "truth_deg": pose_error(tracked.rvec, tracked.tvec, truth)["rotation_deg"],
+            "opencv_truth_deg": pose_error(opencv.rvec, opencv.tvec, truth)["rotation_deg"]}
 
 
 def opencv_answers(sequence: Sequence, frames: list[int]) -> tuple[dict, float]:
@@ -193,6 +198,10 @@ def _report(sequence: Sequence, options: Options, feed: Feed, records: list[dict
         "within": _r(sum(r["within"] for r in rows) / len(rows)) if rows else None,
         "pose_error": {"deg_max": _r(max(r["deg"] for r in rows)),
                        "rel_max": _r(max(r["rel"] for r in rows))} if rows else None,
+        "truth_deg": {who: {"median": _r(statistics.median(r[key] for r in rows)),
+                            "max": _r(max(r[key] for r in rows))}
+                      for who, key in (("tracked", "truth_deg"), ("opencv", "opencv_truth_deg"))
+                      } if rows else None,
         "link_bound_fps": None, "dropped": feed.dropped,
         "setting": "map-owner" if owner else "offload",
         "client_cpu_s_per_frame": totals["client_cpu_s_per_frame"],

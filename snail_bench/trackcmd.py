@@ -19,8 +19,10 @@ PROFILES = ("lan", "paper", "region", "continent")
 
 @click.command("track")
 @click.option("--points", type=click.IntRange(4, 4096), multiple=True, metavar="N",
-              help="Points a frame (repeat for several; default 6). Turbo's frames are "
-                   "padded to N (its 2-4 tags in view: 16 is the demo's circuit).")
+              help="Points a frame (repeat for several; default 6). Turbo's frames take "
+                   "up to N corners of its largest tags in view (2-4 tags: 16 is the "
+                   "demo's circuit; 6 takes a tag and the diagonal of the next), padded "
+                   "to N.")
 @click.option("--frames", type=click.IntRange(2, 1_000_000), default=600, show_default=True,
               help="Frames of the sequence (30 frames/s of camera time).")
 @click.option("--sequence", type=click.Choice(SEQUENCES), default="handheld",

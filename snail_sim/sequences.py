@@ -10,8 +10,9 @@
 - ``turbo``: Turbo's drive (turbo_world.py) at a camera's rate: the robot drives by its
   controller from START to TARGET at ``speed`` m/s (turning at most ``turn_deg_s``), then
   backs up along the same path to START, and again; it sees the room's tags through its
-  distorted wide-angle camera, and each frame's points are the corners of the largest
-  ``points // 4`` tags fully in view (detector noise on the corners).
+  distorted wide-angle camera, and each frame's points are up to ``points`` corners of the
+  largest tags fully in view, all four of a tag before the next (detector noise on the
+  corners).
 
 Pixel noise is Gaussian, ``noise_px`` (1 sigma) on every observation, and correlated in
 time as a tracked feature's is: each point's error drifts (an AR(1) process) by about
@@ -45,6 +46,7 @@ ROOM = np.array([[-4.0, -3.0, 0.0], [4.0, 3.0, 3.0]])  # the room's corners, met
 MARGIN_PX = 8
 SLIP = 0.03  # Turbo's wheel slip, relative (1 sigma): its odometry's error
 NEAREST_M = 0.3
+DIAGONAL_FIRST = (0, 2, 1, 3)  # a tag's corners, in the order a partial tag gives them
 SPREAD_DRAWS = 8  # candidates drawn for each new feature, the farthest from the others kept
 
 
@@ -211,7 +213,7 @@ def _with_start(problem: Problem, start: PoseVectors) -> Problem:
 def turbo(rng: np.random.Generator, points: int, frames: int, fps: float = 30.0,
           speed: float = 0.3, noise_px: float = 0.3, jitter_px: float = 0.1,
           turn_deg_s: float = 45.0) -> Sequence:
-    """Turbo's drive (see the module docstring): ``points // 4`` tags at most a frame."""
+    """Turbo's drive (see the module docstring): ``points`` corners at most a frame."""
     tagmap, camera = room(), robot_camera()
     world = np.concatenate([t.corners_world() for t in tagmap.tags.values()])
     drift = _Drift(rng, len(world), noise_px, jitter_px)
@@ -225,7 +227,7 @@ def turbo(rng: np.random.Generator, points: int, frames: int, fps: float = 30.0,
         if k:
             moved = there_and_back[(k - 1) % len(there_and_back)].camera()
             motions.append(_odometry(rng, moved, truth))
-        chosen = _largest_tags(world, truth, camera, max(points // 4, 1))
+        chosen = _largest_tags(world, truth, camera, points)
         error = drift.step()
         if len(chosen):
             proj, _ = cv2.projectPoints(world[chosen], truth.rvec, truth.tvec, camera.K,
@@ -250,13 +252,19 @@ def _odometry(rng: np.random.Generator, before: PoseVectors, after: PoseVectors
 
 
 def _largest_tags(world: np.ndarray, pose: PoseVectors, camera, count: int) -> np.ndarray:
-    """The corners (indices into ``world``, 4 per tag) of the ``count`` tags with the
-    largest image area among those whose four corners are in view."""
+    """Up to ``count`` corners (indices into ``world``, 4 per tag), tag by tag from the
+    largest in the image among those whose four corners are in view: all four of each,
+    and of the last one as many as are left, diagonal ones first (a device running a
+    circuit of 6 points uses two tags, not one)."""
     inside, pix = _visible(world, pose, camera.K, camera.dist, camera.size)
     whole = [i for i in range(len(world) // 4) if inside[4 * i:4 * i + 4].all()]
     area = {i: cv2.contourArea(pix[4 * i:4 * i + 4].astype(np.float32)) for i in whole}
-    best = sorted(whole, key=lambda i: -area[i])[:count]
-    return np.array([4 * i + c for i in sorted(best) for c in range(4)], np.int64)
+    chosen: list[int] = []
+    for tag in sorted(whole, key=lambda i: -area[i]):
+        chosen += [4 * tag + c for c in DIAGONAL_FIRST[:count - len(chosen)]]
+        if len(chosen) == count:
+            break
+    return np.array(sorted(chosen), np.int64)
 
 
 def _leg(step_m: float, turn_rad: float, most: int = 100_000) -> list[RobotPose]:

@@ -46,6 +46,22 @@ def _project(problem, pose):
     return pix.reshape(-1, 2)
 
 
+def test_turbo_fills_a_circuit_with_whole_tags_then_a_diagonal():
+    """Six points are a tag's four corners and two opposite corners of the next largest
+    (one tag alone leaves the pose undetermined to degrees); sixteen, four whole tags."""
+    for points, tags in ((6, 2), (16, 4)):
+        seq = turbo(np.random.default_rng(2), points, 30)
+        for ids in seq.ids:
+            assert len(ids) == points
+            by_tag = {int(i) // 4: [] for i in ids}
+            for i in ids:
+                by_tag[int(i) // 4].append(int(i) % 4)
+            corners = sorted(sorted(c) for c in by_tag.values())
+            assert len(by_tag) == tags
+            if points == 6:
+                assert corners == [[0, 1, 2, 3], [0, 2]]
+
+
 def test_opencv_converged_is_the_least_squares_minimum():
     seq = handheld(np.random.default_rng(3), 6, 2)
     problem = seq.problems[0]
@@ -86,5 +102,8 @@ def test_the_report_has_the_formats_fields_and_measures_every_frame():
     assert entry["rms_ratio"]["median"] >= 1 - 1e-9  # OpenCV's is the minimum
     assert 0.0 <= entry["within"] <= 1.0
     assert entry["pose_error"]["deg_max"] >= 0 and entry["link_bound_fps"] is None
+    truth = entry["truth_deg"]
+    assert 0 <= truth["tracked"]["median"] <= truth["tracked"]["max"]
+    assert 0 <= truth["opencv"]["median"] <= truth["opencv"]["max"] < 2.0
     ratios = [r["rms_ratio"] for r in entry["per_frame"]]
     assert entry["rms_ratio"]["max"] == pytest.approx(max(ratios), abs=1e-6)
