@@ -144,11 +144,12 @@ class Localizer:
         The first frame gets a padded localization (``min_invocations`` secure runs, from
         ``initial`` as ``localize_*`` take it, or the frame's own first pose); every later
         one exactly ``runs_per_frame`` runs (a Localizer option, default 1), each one
-        Gauss-Newton or LM step from the prediction: the last trusted pose, moved by
-        ``motion`` when given. The servers see the same circuit and count for every frame
-        whatever the data: a lost frame (RMS above ``max_rms_px``, points behind the
-        camera) is re-localized within the later frames' own runs. With ``in_flight`` D,
-        D frames' runs overlap (each starts from the pose of the frame D before it);
+        Gauss-Newton step (``step="lm"`` damps it) from the prediction: the last trusted
+        pose, moved by ``motion`` when given, else by the ``motion_model`` (``"auto"``:
+        the motion between the last two answers while that has predicted better). The
+        servers see the same circuit and count for every frame whatever the data: a lost
+        frame (RMS above ``max_rms_px``, points behind the camera) is re-localized within
+        the later frames' own runs. With ``in_flight`` D, D frames' runs overlap (each starts from the pose of the frame D before it);
         ``rate`` R runs R secure runs a second whatever the frames.
 
         Args:

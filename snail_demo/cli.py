@@ -87,7 +87,7 @@ def accuracy(frames: int, seed: int, backend: str, as_json: bool) -> None:
 @click.option("--max-seconds", type=click.FloatRange(1, 3600), default=None,
               help="--realtime: stop the robot after this long on the clock.  [default: 60]")
 @click.option("--runs-per-frame", type=click.IntRange(1, 20), default=None,
-              help="--realtime: secure runs per frame after the first, one GN/LM step each "
+              help="--realtime: secure runs per frame after the first, one Gauss-Newton step each "
                    "(the fixed schedule: the servers see the same count every frame).  "
                    "[default: 1]")
 @click.option("--link-delay-ms", type=click.FloatRange(0, 10000), default=0.0,
@@ -113,9 +113,9 @@ def turbo(out_dir: str, backend: str, realtime: bool, speed: float | None,
     Step by step (the paper's way): the robot moves at most 0.1 m, stops, takes an image
     and localizes it privately (padded to --min-invocations runs), then moves again.
     With --realtime it drives continuously (see --realtime); measured 2026-12-04 on two
-    shared cores, garbled on loopback, --speed 0.3: at the target within 0.4 cm and 0.35
-    degrees after 7 s of driving, 15-16 private poses a second, 74-80 ms from a frame's
-    capture to its pose (p50; docs/images.md).
+    shared cores, garbled on loopback, --speed 0.3: at the target within 0.4 cm and 0.42
+    degrees after 6.5-7.5 s of driving, 24-25 private poses a second, 56-58 ms from a
+    frame's capture to its pose (p50; docs/images.md).
 
     Writes DIR/turbo.json (one record per control step or frame and the final errors;
     with --realtime the summary adds speed_mps, fps and latency_s, capture to pose),
