@@ -149,8 +149,9 @@ class Localizer:
         the motion between the last two answers while that has predicted better). The
         servers see the same circuit and count for every frame whatever the data: a lost
         frame (RMS above ``max_rms_px``, points behind the camera) is re-localized within
-        the later frames' own runs. With ``in_flight`` D, D frames' runs overlap (each starts from the pose of the frame D before it);
-        ``rate`` R runs R secure runs a second whatever the frames.
+        the later frames' own runs. With ``in_flight`` D, D frames' runs overlap (each
+        starts from the pose of the frame D before it); ``rate`` R runs R secure runs a
+        second whatever the frames.
 
         Args:
             frames: camera images (arrays or file names; needs ``camera`` and
