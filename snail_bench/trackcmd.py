@@ -81,9 +81,10 @@ def track(points: tuple[int, ...], frames: int, sequence: str, runs_per_frame: i
     """Follow a made-up camera privately at its rate: frames/s, latency (frame handed in
     to pose out) and every frame's pose against OpenCV's converged solvePnP.
 
-    2026-12-04, a 2-core machine shared with other work, both servers on it, loopback,
-    600 frames, one run a frame: n = 6 83-99 frames/s, fed at 30 frames/s p95 latency
-    12.7-24 ms; n = 16 16-44 frames/s (docs/tracking.md has every row)."""
+    2026-12-04, a 2-core machine, both servers on it, loopback, 600 frames, one run a
+    frame: n = 6 82-85 frames/s, fed at 30 frames/s p95 latency 16-17 ms; n = 16 37-41
+    frames/s; 99.7-99.8 % of frames within 1 % of OpenCV's RMS (docs/tracking.md has
+    every row)."""
     from snail_client.links import ServiceError
     from snail_client.localize import Options
 

@@ -46,19 +46,21 @@ def _tracking_options(fn):
                      show_default=True, metavar="K",
                      help="After the first frame's padded localization (--min-invocations "
                           "runs), every frame gets exactly K secure runs, each one "
-                          "Gauss-Newton or LM step from the prediction (the last trusted "
-                          "pose): the servers see the same count whatever the data. 0: pad "
-                          "every frame to --min-invocations, as before. At n = 6 one run a "
-                          "frame followed a 30 frames/s hand-held walk at 83-99 frames/s on "
-                          "a shared 2-core machine running both servers (snail-bench track, "
-                          "2026-12-04); 2 runs land closer to the converged pose."),
+                          "--step from the prediction (the last trusted pose, moved by "
+                          "--motion-model): the servers see the same count whatever the "
+                          "data. 0: pad every frame to --min-invocations, as before. At "
+                          "n = 6 one run a "
+                          "frame followed a 30 frames/s hand-held walk at 82-85 frames/s on "
+                          "a 2-core machine running both servers, 99.7 % of frames within "
+                          "1 % of OpenCV's RMS (snail-bench track, 2026-12-04); 2 runs land "
+                          "on the converged pose."),
         click.option("--in-flight", type=click.IntRange(1, MAX_IN_FLIGHT), metavar="D",
                      help="Frames whose runs may overlap: a frame starts from the pose of "
                           "the frame D before it, so a slow client link costs throughput, "
                           "not frames. Default: from the first frame's runs, 1 + a run's "
                           "client round trip over the servers' part of it (garbling, "
                           "evaluation or the tables on the server link): 1 on loopback, 1-2 "
-                          "under the network lab's region profile (17.6-24.4 frames/s at "
+                          "under the network lab's region profile (24.3-24.4 frames/s at "
                           "n = 6 there)."),
         click.option("--rate", type=click.FloatRange(0, min_open=True), metavar="R",
                      help="Secure runs at R per second whatever the frames: a slot no frame "
