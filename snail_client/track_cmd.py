@@ -226,6 +226,10 @@ def _report(out: dict, as_json: bool, quiet: bool) -> int:
     return 0
 
 
+def _counts(counts: dict[str, int]) -> str:
+    return ", ".join(f"{name} {count}" for name, count in sorted(counts.items()))
+
+
 def _runs(count: int) -> str:
     return f"{count} run" + ("" if count == 1 else "s")
 
@@ -239,6 +243,8 @@ def _summary_text(s: dict) -> str:
             f"runs: {s['runs_first_frame']} for the first frame, {after} for each later one "
             f"(--runs-per-frame {s['runs_per_frame']}), {s['in_flight']} in flight; "
             f"lost {s['lost']}, relocalized {s['relocalized']}, revealed {s['revealed']}\n"
-            f"the servers saw: circuit {s['circuit']}, the runs above"
+            + (f"predicted by: {_counts(s['predictions'])} (the client's choice, unseen "
+               "by the servers)\n" if s.get("predictions") else "")
+            + f"the servers saw: circuit {s['circuit']}, the runs above"
             + (f" at {s['rate']:g} per second" if s["rate"] else ", at the frames' pace")
             + f"; client CPU {1000 * s['client_cpu_s_per_frame']:.2f} ms a frame")

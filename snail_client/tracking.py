@@ -29,7 +29,7 @@ import math
 import queue
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -292,7 +292,8 @@ class Tracker:
             solved.spec.registry_id if solved.spec is not None else None, solved.improved))
         out.update(runs=int(out.get("invocations", 0)),
                    latency_s=round(time.perf_counter() - handed_in, 5),
-                   track_status=seen.track_status, revealed=seen.revealed)
+                   track_status=seen.track_status, revealed=seen.revealed,
+                   prediction=plan.prediction)
         return out, solved.built
 
 
@@ -340,6 +341,8 @@ def summary(records: list[dict], wall_s: float, cpu_s: float, tracker: Tracker) 
         "lost": sum(r.get("track_status") == "lost" for r in records),
         "relocalized": sum(r.get("track_status") == "relocalized" for r in records),
         "revealed": sum(bool(r.get("revealed")) for r in records),
+        "predictions": dict(Counter(r["prediction"] for r in records
+                                    if r.get("prediction"))),
         "padding_frames": tracker.padding_frames,
         "paced_padding_runs": tracker.paced_padding_runs,
         "in_flight": tracker.in_flight, "rate": tracker.options.rate,

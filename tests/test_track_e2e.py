@@ -127,7 +127,10 @@ def test_the_command_line_writes_records_and_a_summary(services, walk, tmp_path)
     written = json.loads(out_file.read_text())
     assert [r["frame"] for r in written] == list(range(5))
     for record in written:
-        assert {"runs", "latency_s", "track_status", "revealed"} <= set(record)
+        assert {"runs", "latency_s", "track_status", "revealed", "prediction"} <= set(record)
+    assert written[0]["prediction"] is None  # the padded first frame starts on its own
+    assert sum(summary["predictions"].values()) == 4
+    assert set(summary["predictions"]) <= {"last-pose", "constant-velocity"}
     human = CliRunner().invoke(client, ["track", "--input", str(seq), *remote])
     assert human.exit_code == 0 and "frames/s" in human.stdout and "the servers saw" in \
         human.stdout

@@ -92,17 +92,23 @@ def test_auto_extrapolates_a_steady_motion_once_it_has_predicted_better():
     poses = [A]
     for _ in range(8):
         poses.append(compose(STEP, poses[-1]))
-    starts = _followed(Schedule(runs_per_frame=1), poses)
+    schedule = Schedule(runs_per_frame=1)
+    starts = _followed(schedule, poses)
     assert _same(starts[2], poses[1])  # no vote yet: the last trusted pose
     assert all(_same(start, pose) for start, pose in zip(starts[4:], poses[4:]))
+    assert schedule.plan(len(poses)).prediction == "constant-velocity"
+    assert schedule.plan(len(poses), motion=STEP).prediction == "odometry"
+    assert Schedule().plan(0).prediction is None  # the padded first frame: its own start
 
 
 def test_auto_keeps_the_last_pose_when_the_motion_jitters():
     """A camera shaking back and forth about A: the last frames' motion points the wrong
     way every time, so auto never extrapolates it (constant-velocity does)."""
     poses = [A if i % 2 == 0 else compose(STEP, A) for i in range(10)]
-    auto = _followed(Schedule(runs_per_frame=1), poses)
+    schedule = Schedule(runs_per_frame=1)
+    auto = _followed(schedule, poses)
     assert all(_same(start, pose) for start, pose in zip(auto[1:], poses[:-1]))
+    assert schedule.plan(len(poses)).prediction == "last-pose"
     forced = _followed(Schedule(runs_per_frame=1, motion_model="constant-velocity"), poses)
     assert not _same(forced[3], poses[2])
     assert _same(forced[3], compose(relative(poses[1], poses[2]), poses[2]))

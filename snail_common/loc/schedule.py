@@ -57,6 +57,9 @@ class Plan:
     runs: int
     start: PoseVectors | None
     revealed: bool = False  # the plan itself departs from the schedule (on_lost reveal)
+    # what moved the start from the last answer over the frame before this one:
+    # "odometry", "constant-velocity" or nothing ("last-pose"); None: the frame's own
+    prediction: str | None = None
 
 
 @dataclass(frozen=True)
@@ -143,30 +146,33 @@ class Schedule:
         state = self._state_at(index - lag)
         if state.state == INITIALIZING:
             return Plan(index, True, self.min_invocations, None)
-        start = self._predict(state, index)
+        start, by = self._predict(state, index)
         if not self.runs_per_frame:  # padded every frame, as before the fixed schedule
-            return Plan(index, True, self.min_invocations, start)
+            return Plan(index, True, self.min_invocations, start, prediction=by)
         if state.state == LOST and self.on_lost == "reveal":
-            return Plan(index, True, self.min_invocations, start, revealed=True)
-        return Plan(index, False, self.runs_per_frame, start)
+            return Plan(index, True, self.min_invocations, start, True, by)
+        return Plan(index, False, self.runs_per_frame, start, prediction=by)
 
     def predict(self, index: int, lag: int = 1) -> PoseVectors | None:
         """The start of frame ``index``: the last trusted pose (or, when lost, the lost
         answer worth keeping) moved over the frames since; None before any pose."""
-        return self._predict(self._state_at(index - lag), index)
+        return self._predict(self._state_at(index - lag), index)[0]
 
-    def _predict(self, state: _State, index: int) -> PoseVectors | None:
+    def _predict(self, state: _State, index: int) -> tuple[PoseVectors | None, str | None]:
+        """The start, and what moved it over the last frame (Plan.prediction)."""
         base = state.lost_at if state.state == LOST and state.lost_at else state.anchor
         if base is None:
-            return None
-        at, pose = base
+            return None, None
+        (at, pose), by = base, "last-pose"
         for frame in range(at + 1, index + 1):
-            motion = self._motions.get(frame)
-            if motion is None and state.extrapolate:
-                motion = state.velocity
-            if motion is not None:
+            motion, by = self._motions.get(frame), "odometry"
+            if motion is None and state.extrapolate and state.velocity is not None:
+                motion, by = state.velocity, "constant-velocity"
+            if motion is None:
+                by = "last-pose"
+            else:
                 pose = compose(motion, pose)
-        return pose
+        return pose, by
 
     def _state_at(self, index: int) -> _State:
         """The state once frame ``index`` was observed (the first frame's, before it):
