@@ -244,8 +244,9 @@ def record(result: Localized, options: Options, traffic: dict[str, int],
         "converged": status == "converged", "iterations": result.iterations,
         "invocations": result.invocations, "cost": float(result.cost),
         "rms_px": result.rms_px,
-        "algorithm": options.algorithm, "mode": options.mode, "solve": options.solve_at,
-        "arith": result.spec.arith, "solver": options.solver, "backend": options.backend,
+        "algorithm": options.step if tracked else options.algorithm,  # what the runs took
+        "mode": options.mode, "solve": options.solve_at, "arith": result.spec.arith,
+        "solver": options.solver, "backend": options.backend,
         "timing": {"total_s": result.total_s, "per_iteration_s": result.walls},
         "traffic": traffic,
     }
