@@ -112,8 +112,9 @@ def track_cmd(input_path: str | None, as_json: bool, output: str | None, fail_fa
     """Follow a sequence privately: the first frame padded, every later one exactly
     --runs-per-frame secure runs from the last trusted pose.
 
-    Each record adds runs, latency_s, track_status (tracking, lost or relocalized) and
-    revealed (something data-dependent changed what the servers saw). A frame that
+    Each record adds runs, latency_s, track_status (tracking, lost or relocalized),
+    revealed (something data-dependent changed what the servers saw) and prediction
+    (what moved its start: odometry, constant-velocity or last-pose). A frame that
     cannot be read is named on stderr, recorded with its failure, and still makes its
     runs (padding); --output always gets what was computed. Exit status: 0 every frame
     trusted; 1 a secure run failed; 2 the sequence cannot be read; 3 some frame failed or

@@ -49,6 +49,17 @@ class Capture:
     render_cpu_s: float
 
 
+@dataclass(frozen=True)
+class Picture:
+    """A frame kept for the animation: its index, the wall-clock slot its pose arrived in,
+    the camera image and the pose."""
+
+    index: int
+    slot: int
+    image: np.ndarray
+    pose: Pose
+
+
 @dataclass
 class RealtimeRun:
     """What happened, frame by frame (turbo.json's steps) and for drawing: the true pose
@@ -57,7 +68,7 @@ class RealtimeRun:
     steps: list[dict] = field(default_factory=list)
     true_path: list[RobotPose] = field(default_factory=list)
     estimates: list[RobotPose] = field(default_factory=list)
-    pictures: list[tuple[int, np.ndarray, Pose]] = field(default_factory=list)
+    pictures: list[Picture] = field(default_factory=list)
     end: RobotPose | None = None  # the true pose once the robot stopped
     wall_s: float = 0.0
 
@@ -105,13 +116,15 @@ def drive_realtime(localizer: Localizer, start: RobotPose, target: RobotPose, sp
                    look: Look, clock: Clock = time.monotonic,
                    picture_every_s: float = 0.1) -> RealtimeRun:
     """Drive from ``start`` to ``target`` at ``speed`` m/s on the wall clock (module
-    docstring); keeps a frame for the animation every ``picture_every_s`` seconds."""
+    docstring); keeps for the animation the first frame whose pose arrives in each
+    ``picture_every_s`` slot of the wall clock, with its slot (a slot no pose arrived in
+    has none)."""
     run = RealtimeRun()
     robot = Robot(start, rng, clock)
     camera = _Camera(robot, localizer, camera_fps, look, rng)
     servo = Servo(target, speed)
     anchor: tuple[RobotPose, RobotPose] | None = None  # (trusted estimate, odometry then)
-    began, last_picture = robot.started, -math.inf
+    began, last_slot = robot.started, -1
     cpu = time.process_time()
     for index, pose in enumerate(localizer.track(camera.frames(), motion=camera.motion)):
         now = clock()
@@ -152,9 +165,10 @@ def drive_realtime(localizer: Localizer, start: RobotPose, target: RobotPose, sp
         cpu = cpu_now
         run.true_path.append(cap.true)
         run.estimates.append(at_capture)
-        if now - last_picture >= picture_every_s or servo.arrived or camera.stop:
-            run.pictures.append((index, camera.image, pose))
-            last_picture = now
+        slot = math.floor((now - began) / picture_every_s)
+        if slot > last_slot or servo.arrived or camera.stop:
+            run.pictures.append(Picture(index, slot, camera.image, pose))
+            last_slot = slot
         if servo.arrived:
             camera.stop = True
     run.wall_s = clock() - began

@@ -97,13 +97,15 @@ def run_turbo_realtime(out: Path, backend: str, speed: float, camera_fps: float,
     if verbose:
         for k, step in enumerate(run.steps):
             print(f"frame {k}: {json.dumps(step)}", file=sys.stderr)
-    pictures = [frame(RealtimeRun(run.steps[:i + 1], run.true_path[:i + 1],
-                                  run.estimates[:i + 1]),
-                      image, pose, TARGET, tagmap, camera, realtime_lines(run.steps[i], i))
-                for i, image, pose in run.pictures]
-    _write_video(out / "turbo.mp4", pictures, VIDEO_FPS)
+    pictures = [frame(RealtimeRun(run.steps[:p.index + 1], run.true_path[:p.index + 1],
+                                  run.estimates[:p.index + 1]),
+                      p.image, p.pose, TARGET, tagmap, camera,
+                      realtime_lines(run.steps[p.index], p.index))
+                for p in run.pictures]
+    timeline = on_the_clock(pictures, [p.slot for p in run.pictures])
+    _write_video(out / "turbo.mp4", timeline, VIDEO_FPS)
     every = round(VIDEO_FPS / GIF_FPS)
-    write_gif(out / "turbo.gif", pictures[::-every][::-1], GIF_FPS, GIF_WIDTH)
+    write_gif(out / "turbo.gif", timeline[::-every][::-1], GIF_FPS, GIF_WIDTH)
     cv2.imwrite(str(out / "first_frame.png"), pictures[0])
     cv2.imwrite(str(out / "last_frame.png"), pictures[-1])
     cv2.imwrite(str(out / "trajectory.png"), realtime_plot(run, TARGET, tagmap, 720))
@@ -119,6 +121,15 @@ def realtime_lines(step: dict, index: int) -> list[str]:
             f"{100 * step['command']['speed_mps']:.0f} cm/s  pose "
             f"{1000 * step['latency_s']:.0f} ms after capture  error now "
             f"{1000 * step['position_error_now_m']:.1f} mm"]
+
+
+def on_the_clock(pictures: list[np.ndarray], slots: list[int]) -> list[np.ndarray]:
+    """One picture per slot of the wall clock (drive_realtime's) from the first to the
+    last: each shows the newest pose that had arrived by then, so the video plays in real
+    time even when poses come slower than its rate (a loaded machine) or at a rate that
+    does not divide it."""
+    repeats = np.append(np.diff(slots), 1).clip(min=0)
+    return [picture for picture, n in zip(pictures, repeats) for _ in range(n)]
 
 
 def _write_video(path: Path, pictures: list[np.ndarray], fps: float) -> None:

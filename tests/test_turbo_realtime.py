@@ -19,7 +19,7 @@ from snail_client.api import Localizer
 from snail_demo.cli import main as demo
 from snail_demo.render import Look
 from snail_demo.turbo_realtime import drive_realtime, summary_realtime
-from snail_demo.turbo_run import MAX_TAGS, run_turbo_realtime
+from snail_demo.turbo_run import MAX_TAGS, on_the_clock, run_turbo_realtime
 from snail_sim.realtime import Robot, Servo, arc, carried
 from snail_sim.turbo_world import TARGET, RobotPose, robot_camera, room
 
@@ -147,23 +147,29 @@ def test_the_realtime_loop_advances_with_the_clock_and_reaches_the_target(late_r
         assert s["latency_s"] > 0.12
     assert all(b["tick"] - a["tick"] >= 4 for a, b in itertools.pairwise(steps[1:]))
     # the robot drove on while each pose was computed: at cruising speed, 0.3 m/s times
-    # the pose's latency (the wheels slip a few per cent)
-    cruising = [b for a, b, c in zip(steps, steps[1:], steps[2:])
-                if a["command"]["speed_mps"] == b["command"]["speed_mps"] == 0.3
-                and c["phase"] == "drive"]
-    assert len(cruising) >= 3
+    # the pose's latency (the wheels slip a few per cent). A frame is the newest tick's,
+    # taken up to a tick before the last pose was acted on: from its capture the robot
+    # drove on the command of two steps back, then on the last one's
+    cruising = [c for a, b, c in zip(steps, steps[1:], steps[2:])
+                if a["command"]["speed_mps"] == b["command"]["speed_mps"] == 0.3]
+    assert len(cruising) >= 2
     for s in cruising:
-        moved = math.hypot(s["robot_true_now"][0] - s["robot_true"][0],
-                           s["robot_true_now"][1] - s["robot_true"][1])
+        moved = math.dist(s["robot_true_now"][:2], s["robot_true"][:2])
         assert moved / (0.3 * s["latency_s"]) == pytest.approx(1.0, abs=0.12)
 
 
 def test_a_late_pose_steers_from_where_the_robot_is_now(late_run):
+    """Carried over the odometry, the estimate stays as far from the robot as it was at
+    capture, plus the wheels' slip over the way driven since (3 % at 1 sigma: 15 % is five
+    sigma, and the way grows with the latency, so a loaded machine needs no other bound);
+    left behind at capture it would trail by the whole way."""
     run, _ = late_run
     for s in run.steps[1:]:
         now_true, now_estimate = s["robot_true_now"], s["robot_estimate_now"]
         at_capture = s["robot_estimate"]
-        assert math.dist(now_estimate[:2], now_true[:2]) < 0.012
+        driven = math.dist(s["robot_true"][:2], now_true[:2])
+        assert (math.dist(now_estimate[:2], now_true[:2])
+                < s["position_error_m"] + 0.15 * driven + 0.001)
         if s["command"]["speed_mps"] == 0.3:  # the capture's pose is centimetres behind
             assert math.dist(at_capture[:2], now_true[:2]) > 0.035
     # and the command is the controller's on that estimate (far from the target, where
@@ -184,7 +190,7 @@ def test_a_realtime_run_writes_log_video_animation_and_plot(tmp_path):
     assert final["reached"] and final["position_error_m"] <= 0.01
     log = json.loads((tmp_path / "turbo.json").read_text())
     assert log["final"] == final
-    assert final["speed_mps"] == 0.3 and final["fps"] > 3
+    assert final["speed_mps"] == 0.3 and final["fps"] > 0
     assert 0 < final["latency_s"]["p50"] <= final["latency_s"]["p95"] <= final["latency_s"]["max"]
     assert final["runs_after_first"] == [1] and final["revealed"] == 0
     for step in log["steps"]:
@@ -192,12 +198,28 @@ def test_a_realtime_run_writes_log_video_animation_and_plot(tmp_path):
                 "client_cpu_s", "latency_s", "robot_true_now", "robot_estimate_now"} <= step.keys()
     video = cv2.VideoCapture(str(tmp_path / "turbo.mp4"))
     frames = int(video.get(cv2.CAP_PROP_FRAME_COUNT))
-    assert frames >= final["drive_s"] * 10 * 0.8  # ten a second of the drive
+    # one picture per 0.1 s of the wall clock from the first pose to the last, however
+    # fast the poses came (t is rounded to 0.1 ms: a slot edge may move by one)
+    arrived = [math.floor(step["t"] * 10) for step in log["steps"]]
+    assert frames == pytest.approx(arrived[-1] - arrived[0] + 1, abs=1)
     if hasattr(cv2, "imreadanimation"):
         ok, animation = cv2.imreadanimation(str(tmp_path / "turbo.gif"))
         assert ok and len(animation.frames) == pytest.approx(frames / 2, abs=1)
         assert animation.frames[0].shape[1] == 720
     assert cv2.imread(str(tmp_path / "trajectory.png")).shape == (720 + 300, 720, 3)
+
+
+@pytest.mark.parametrize("every_s", [0.083, 0.15, 0.4])
+def test_the_video_keeps_the_wall_clock_whatever_the_pose_rate(every_s):
+    # poses slower than ten a second (a loaded machine) or at a rate that does not divide it
+    times = [0.7 + every_s * k for k in range(int(3.0 / every_s) + 1)]
+    pictures = [np.full((2, 2, 3), k, np.uint8) for k in range(len(times))]
+    timeline = on_the_clock(pictures, [math.floor(t * 10) for t in times])
+    first, last = math.floor(times[0] * 10), math.floor(times[-1] * 10)
+    assert len(timeline) == last - first + 1
+    for slot, shown in enumerate(timeline, start=first):
+        newest = max(k for k, t in enumerate(times) if math.floor(t * 10) <= slot)
+        assert shown[0, 0, 0] == newest
 
 
 @pytest.mark.parametrize(("args", "message"), [
