@@ -203,9 +203,9 @@ class AsyncSecureRunner:
                     await asyncio.sleep(pause * (0.5 + secrets.randbelow(1000) / 1000))
                     pause = min(2 * pause, BACKOFF_MAX)
                 continue
-            waited = time.perf_counter() - t0 - inv.wall_s
-            if waited > 0.001:
-                inv.timing["client_busy_wait_s"] = round(waited, 4)
+            if attempt:  # the time the refused attempts and their pauses took
+                inv.timing["client_busy_wait_s"] = round(
+                    time.perf_counter() - t0 - inv.wall_s, 4)
             return inv
 
     async def _invoke_once(self, circuit_id: str, input_bits: np.ndarray,
