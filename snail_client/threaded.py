@@ -46,8 +46,8 @@ class Gate:
     """One slot of the pacer: each run in it waits for a tick. ``limit`` runs (None: until
     ``close``) end the slot."""
 
-    def __init__(self, limit: int | None) -> None:
-        self.limit, self.started, self.closed = limit, 0, False
+    def __init__(self, limit: int | None, padding: bool = False) -> None:
+        self.limit, self.started, self.closed, self.padding = limit, 0, False, padding
         self._tick = asyncio.Event()
 
     @property
@@ -79,6 +79,7 @@ class Pacer:
         self._waiting: deque[tuple[asyncio.Future, int | None]] = deque()
         self._ticker: asyncio.Task | None = None
         self._padding: set[asyncio.Task] = set()
+        self._closing = False  # no new slot; the padding frame under way keeps its ticks
 
     def start(self) -> None:
         self._ticker = asyncio.get_running_loop().create_task(self._tick())
@@ -92,14 +93,14 @@ class Pacer:
     async def _tick(self) -> None:
         loop = asyncio.get_running_loop()
         at = loop.time()
-        while True:
+        while not self._closing:
             gate = self._next_gate()
             while True:
                 if gate is not None:
                     gate.tick()
                 at += self.interval
                 await asyncio.sleep(max(0.0, at - loop.time()))
-                if gate is None or gate.over:
+                if gate is None or gate.over or (self._closing and not gate.padding):
                     break
 
     def _next_gate(self) -> Gate | None:
@@ -111,7 +112,7 @@ class Pacer:
                 return gate
         if self.circuit is None:
             return None
-        gate = Gate(self.runs)
+        gate = Gate(self.runs, padding=True)
         task = asyncio.get_running_loop().create_task(self._pad(gate, self.circuit))
         self._padding.add(task)
         task.add_done_callback(self._padding.discard)
@@ -129,15 +130,18 @@ class Pacer:
             self.padding_runs += 1
 
     async def close(self) -> None:
-        """Stop the ticks; the padding frame under way finishes its runs (a run cut off
-        would be a failed session in the servers' logs)."""
+        """Start no slot more; the padding frame under way finishes its runs on its ticks
+        (a run cut off would be a failed session in the servers' logs), then the ticks
+        stop."""
+        self._closing = True
+        bound = 5 * self.runs * self.interval + 30
+        for gate_task in list(self._padding):
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(gate_task, bound)
         if self._ticker is not None:
             self._ticker.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._ticker
-        for gate_task in list(self._padding):
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(gate_task, 5 * self.runs * self.interval + 30)
         for future, _ in self._waiting:
             future.cancel()
 

@@ -117,25 +117,26 @@ class Tracker:
                 yield from self._sequential(source, None, until_tracking=True)
                 yield from self._overlapped(source, pool)
             return
-        rate = self.options.rate
-        with ThreadedRunner(self.backend.secure, rate, self.schedule.runs_per_frame) as th, \
-                concurrent.futures.ThreadPoolExecutor(self.frames.max_in_flight,
-                                                      "snail-frame") as pool:
-            self._threaded = th
-            try:
-                source = iter(items)
-                yield from self._sequential(source, pool, until_tracking=True)
-                if self.in_flight > 1:
-                    yield from self._overlapped(source, pool)
-                else:
-                    yield from self._sequential(source, pool)
-            except BaseException:
-                th.cancel_calls()  # interrupted: the frames under way end now
-                raise
-            finally:
-                if th.pacer is not None:
-                    self.paced_padding_runs = th.pacer.padding_runs
-                self._threaded = None
+        th = ThreadedRunner(self.backend.secure, self.options.rate,
+                            self.schedule.runs_per_frame)
+        try:
+            with th, concurrent.futures.ThreadPoolExecutor(self.frames.max_in_flight,
+                                                           "snail-frame") as pool:
+                self._threaded = th
+                try:
+                    source = iter(items)
+                    yield from self._sequential(source, pool, until_tracking=True)
+                    if self.in_flight > 1:
+                        yield from self._overlapped(source, pool)
+                    else:
+                        yield from self._sequential(source, pool)
+                except BaseException:
+                    th.cancel_calls()  # interrupted: the frames under way end now
+                    raise
+        finally:
+            self._threaded = None
+            if th.pacer is not None:  # counted once the pacer stopped: the padding
+                self.paced_padding_runs = th.pacer.padding_runs  # frame it ended included
 
     def _sequential(self, source: Iterator[Item], pool: concurrent.futures.Executor | None,
                     until_tracking: bool = False) -> Iterator[tuple[dict, Any]]:
