@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import json
 import signal
-import time
 
 import numpy as np
 import pytest
@@ -47,14 +46,14 @@ def test_sigterm_finishes_the_session_under_way_refuses_new_ones_and_exits_0(rol
                 first = await r.invoke(CIRCUIT, rows[0])  # the session under way
                 return first.outputs, refused.value
 
-        t0 = time.monotonic()
         outputs, refused = asyncio.run(drained())
         np.testing.assert_array_equal(outputs, evaluate_bits(schedule, rows[:1])[0])
         assert refused.code == DRAINING, refused
-        assert daemon.process.wait(30) == 0
-        assert time.monotonic() - t0 < 25  # it left once its sessions were done
+        assert daemon.process.wait(60) == 0
         events = _events(daemon.log)
         kinds = [e["event"] for e in events]
         assert "shutting_down" in kinds and kinds[-1] == "stopped"
+        # it left once its sessions were done, not when the 30 s grace ran out
+        assert events[-1]["sessions_cut"] == 0
         outcomes = [e["outcome"] for e in events if e["event"] == "session"]
         assert "ok" in outcomes and DRAINING in outcomes, outcomes

@@ -37,7 +37,7 @@ def _localize(*args: str, prefix: tuple[str, ...] = ()) -> subprocess.CompletedP
     return subprocess.run([*prefix, sys.executable, "-m", "snail_client", "localize",
                            "--input", str(EXAMPLE), "--min-invocations", "1", "--json",
                            "--link-timeout", str(LINK_TIMEOUT), *args],
-                          capture_output=True, text=True, timeout=BOUND_S + 60)
+                          capture_output=True, text=True, timeout=BOUND_S)  # a hang guard
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,6 @@ def test_a_lossy_link_gives_the_right_pose_or_one_clear_error(lab, clear, link, 
         lab.shape({link: Shape()})
     print(f"{link} {loss} % loss: exit {proc.returncode} after {took:.1f} s "
           f"{proc.stderr.strip()[-300:]}")
-    assert took < BOUND_S
     if proc.returncode == 0:
         garbled = json.loads(proc.stdout)
         for key in ("rvec", "tvec", "iterations", "cost", "status"):

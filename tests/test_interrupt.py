@@ -57,16 +57,15 @@ def test_ctrl_c_ends_a_daemons_sessions_with_an_error(tmp_path, role):
                 session = await r._prepare(circuit)  # labels never sent: it stays open
                 await asyncio.sleep(0.5)
                 daemon.process.send_signal(signal.SIGINT)
-                t0 = time.monotonic()
                 with pytest.raises(ServiceError) as caught:
                     await r._collect(session)
-                return time.monotonic() - t0, str(caught.value)
+                return str(caught.value)
 
-        waited, message = asyncio.run(stalled_session())
+        message = asyncio.run(stalled_session())
         _wait_for(daemon.process)
         assert daemon.process.returncode == 130
-        assert waited < 10  # not the 60 s grace period
-        # the interrupted daemon's own error, or the other server's word that it went
+        # the interrupted daemon's own error, or the other server's word that it went:
+        # not the client's "no result within 30 s" (the 60 s grace was not waited out)
         assert any(w in message for w in ("shutting down", "aborted", "peer_lost")), message
         log = daemon.log.read_text()
         assert "Traceback" not in log

@@ -349,8 +349,7 @@ def test_a_map_owner_gone_mid_frame_fails_the_run_by_name(servers, tmp_path):
         backend = GarbledBackend(runner)
         owner.localize_shared(frame, published, masked, options, backend)  # links pooled
         mapd.stop()
-        start = time.monotonic()
-        with pytest.raises(ServiceError, match="map owner"):
+        with pytest.raises(ServiceError, match="map owner") as gone:
             owner.localize_shared(frame, published, masked, options, backend)
-        assert time.monotonic() - start < 10
+        assert "no result within" not in str(gone.value)  # the lost link's, not a timeout's
         assert runner.health("garbler")["role"] == "garbler"

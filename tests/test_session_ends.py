@@ -82,7 +82,7 @@ async def _holding(services, count: int, **kwargs) -> AsyncSecureRunner:
                           ahead=count, **kwargs)
     await r.connect()
     r.expect(CIRCUIT, 100)
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 60  # a hang guard
     while len(r.ahead._prepared.get(CIRCUIT, ())) < count:
         assert time.monotonic() < deadline, "the reservations were never prepared"
         await asyncio.sleep(0.05)
@@ -211,13 +211,12 @@ def test_a_client_half_of_a_session_that_already_ended_is_told_at_once(services,
         assert verdict["t"] == "error" and verdict["sid"] == sid
         with raw(services.evaluator_addr, services.tls_dir) as client:
             hello(client)
-            t0 = time.monotonic()
             client.sendall(encode_bytes(messages.make("session_start", **start)))
             answer = read_msg(client)
-            waited = time.monotonic() - t0
     assert answer["t"] == "error" and answer["code"] == errors.TIMEOUT
+    # the ended session's own reason: held waiting, the client half would have timed out
+    # for want of a garbler half instead
     assert "the client's input labels did not arrive" in answer["message"]
-    assert waited < 1.5
     assert _at_rest(services) == rest
 
 

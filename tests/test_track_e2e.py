@@ -172,9 +172,11 @@ def test_the_map_owner_setting_tracks_on_the_same_schedule(walk, tmp_path):
 
 def test_a_constant_rate_runs_on_through_a_pause_in_the_frames(services, walk):
     """--rate: the servers see runs at the rate while the camera pauses (padding), so
-    the gap between runs never shows the pause; without it, the pause shows."""
+    the gap between runs never shows the pause; without it, the pause shows. (Bounds
+    relative to the test's own pause: a run would have to take half of it, 60 times its
+    time on an idle core, for padding not to split it: docs/development.md.)"""
     _, frames = walk
-    pause_s = 0.6
+    pause_s = 1.5
 
     def paused(rate: float | None) -> float:
         def camera():
@@ -193,7 +195,7 @@ def test_a_constant_rate_runs_on_through_a_pause_in_the_frames(services, walk):
         return max(b - a for a, b in itertools.pairwise(starts))
 
     assert paused(None) >= pause_s
-    assert paused(40.0) < pause_s / 3  # ticks every 25 ms, padding when no frame waits
+    assert paused(40.0) < pause_s / 2  # ticks every 25 ms, padding when no frame waits
 
 
 def test_ctrl_c_in_a_track_is_one_line_exit_130_and_keeps_the_frames(tmp_path):
@@ -205,9 +207,10 @@ def test_ctrl_c_in_a_track_is_one_line_exit_130_and_keeps_the_frames(tmp_path):
                              str(seq), "--output", str(out_file), "-q"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=sigint_default)
-    time.sleep(8)  # the embedded servers are up and frames are under way
+    first = proc.stdout.readline()  # the embedded servers are up and frames under way
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=60)
+    out = first + out
     assert proc.returncode == 130, err
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1].startswith("snail-client: interrupted after ")

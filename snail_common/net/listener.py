@@ -183,6 +183,7 @@ class Listener:
         deadline = time.monotonic() + (0 if self.interrupted else self.options.grace)
         while self.under_way() and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
+        cut = self.counters["active"]  # under way when the grace ran out (or Ctrl-C came)
         server.close()
         if scrapes is not None:
             scrapes.close()
@@ -194,7 +195,7 @@ class Listener:
         await self._drain_handlers(timeout=1.0)
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(server.wait_closed(), 1.0)
-        announce(self.log, "stopped", **self.metrics.health())
+        announce(self.log, "stopped", sessions_cut=cut, **self.metrics.health())
 
     async def _serve_metrics(self) -> asyncio.AbstractServer | None:
         if self.options.metrics is None or self.options.tls_dir is None:
