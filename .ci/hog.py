@@ -40,7 +40,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("command: give the command to run after --")
     if args.load < 0:
         parser.error(f"--load: must be 0 or more, got {args.load}")
-    hogs = [multiprocessing.Process(target=spin, daemon=True) for _ in range(args.load)]
+    fork = multiprocessing.get_context("fork")  # children of this process, as they look
+    hogs = [fork.Process(target=spin, daemon=True) for _ in range(args.load)]
     for hog in hogs:
         hog.start()
     began = time.monotonic()
