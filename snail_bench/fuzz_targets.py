@@ -24,7 +24,8 @@ from snail_common.loc.mapfile import load_frame, load_map
 from snail_common.loc.problem import ProblemError, load_problem, read_sequence
 from snail_common.net import messages
 from snail_common.net.errors import ProtocolError
-from snail_common.net.frames import FrameReader, decode, encode_bytes
+from snail_common.net.frames import LENGTH, FrameReader, decode, encode_bytes
+from snail_common.net.seal import EVALUATOR_TO_GARBLER, GARBLER_TO_EVALUATOR, FrameSeal
 from snail_common.net.tls import TLSFileError, add_client, client_context, make_certs, read_revoked
 
 Target = Callable[[bytes], None]
@@ -39,6 +40,37 @@ def frames(data: bytes) -> None:
     cut = 1 + (data[0] if data else 0)
     for start in range(1, len(data), cut):
         chunk = data[start:start + cut]
+        view = reader.buffer()
+        size = min(len(view), len(chunk))
+        view[:size] = chunk[:size]
+        reader.filled(size)
+
+
+_FUZZ_KEY = bytes(range(32))  # the sealed link's key in the fuzz target (fixed: replayable)
+
+
+def sealed_frames(data: bytes) -> None:
+    """What reaches a sealed table link's reader (--table-link aead): the frames of the
+    stream after the first three bytes, each sealed as the other server would, one bit
+    flipped where bytes 1-2 say (none past the end: the frames decode, so the fuzzer
+    reaches the messages behind the seal), cut where byte 0 says."""
+    if len(data) < 3:
+        return
+    sender = FrameSeal(_FUZZ_KEY, GARBLER_TO_EVALUATOR, EVALUATOR_TO_GARBLER)
+    wire, rest = bytearray(), memoryview(data)[3:]
+    while len(rest) >= LENGTH.size:
+        (length,) = LENGTH.unpack_from(rest)
+        body = rest[LENGTH.size : LENGTH.size + min(length, 1 << 16)]
+        wire += b"".join(bytes(p) for p in sender.seal([b"", body]))
+        rest = rest[LENGTH.size + len(body):]
+    flip = int.from_bytes(data[1:3], "big")
+    if flip < len(wire):
+        wire[flip] ^= 1
+    reader = FrameReader(max_frame=1 << 16,
+                         seal=FrameSeal(_FUZZ_KEY, EVALUATOR_TO_GARBLER, GARBLER_TO_EVALUATOR))
+    cut = 1 + data[0]
+    for start in range(0, len(wire), cut):
+        chunk = wire[start:start + cut]
         view = reader.buffer()
         size = min(len(view), len(chunk))
         view[:size] = chunk[:size]
@@ -178,6 +210,7 @@ def _patched(pem: bytes, patch: bytes) -> bytes:
 # each parser with the errors it documents for bad input (TLSFileError is a ValueError)
 PARSERS: dict[str, tuple[Target, tuple[type[Exception], ...]]] = {
     "frames": (frames, (ProtocolError,)), "message": (message, (ProtocolError,)),
+    "sealed_frames": (sealed_frames, (ProtocolError,)),
     "problem": (problem, (ProblemError,)), "sequence": (sequence, (ProblemError,)),
     "camera": (camera, (ProblemError,)), "tagmap": (tagmap, (ProblemError,)),
     "colmap_bin": (colmap_bin, (ProblemError,)), "colmap_txt": (colmap_txt, (ProblemError,)),
@@ -222,6 +255,7 @@ def seeds(target: str) -> list[bytes]:
                     "initial_pose": {"rvec": [0, 0, 0], "tvec": [0, 0, 5]}}
     by_target = {
         "frames": [b"\x00" + b"".join(wire), b"\x03" + wire[0]],
+        "sealed_frames": [b"\x00\xff\xff" + b"".join(wire), b"\x07\xff\xff" + wire[1]],
         "message": [w[4:] for w in wire],
         "problem": [json.dumps(problem_json).encode()],
         "sequence": [(json.dumps(problem_json) + "\n") .encode() * 2],

@@ -28,8 +28,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -37,9 +39,18 @@ import numpy as np
 from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net import messages
 from snail_common.net.conn import Connection
-from snail_common.net.errors import BAD_REQUEST, EVICTED, TIMEOUT, ProtocolError
+from snail_common.net.datalink import TLS, DataPort
+from snail_common.net.errors import (
+    BAD_REQUEST,
+    EVICTED,
+    TIMEOUT,
+    ConnectionClosed,
+    ProtocolError,
+)
+from snail_common.net.logs import event
 from snail_common.net.metrics import OK
 from snail_common.net.service import Daemon, Options
+from snail_common.net.sharedport import SharedPort
 
 from .client_side import ClientSide
 from .lanes import LaneBatcher
@@ -60,6 +71,41 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
         self.ended: OrderedDict[bytes, ProtocolError] = OrderedDict()  # sid -> why
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
         self.owner_early = EarlyOwnerLabels()
+        self.data_port = DataPort(options.table_link, options.handshake_timeout, logger,
+                                  self._data_link, self._data_link_refused,
+                                  options.session_timeout, self.bodies)
+
+    # ---- the garbler's table data link (snail_common/net/datalink.py) --------------------
+    def capabilities_for(self, conn: Connection) -> dict[str, Any]:
+        """A garbler's carry how its tables travel (and its token for the data port)."""
+        caps = self.capabilities()
+        return caps | self.data_port.grant(conn) if conn.peer_role == "garbler" else caps
+
+    async def listen(self, host: str, port: int, ctx: ssl.SSLContext,
+                     factory: Callable[[], Connection]) -> Any:
+        """With a data link, its connections come to the TLS port (sharedport.py)."""
+        if self.options.table_link == TLS:
+            return await super().listen(host, port, ctx, factory)
+        return await SharedPort(factory, ctx, self.data_port.gate,
+                                self.options.handshake_timeout,
+                                self._silent).start(host, port)
+
+    def _data_link(self, conn: Connection) -> None:
+        """A data link brought its token: confirm it (sealed, in aead) and serve it."""
+        try:
+            conn.write(self.capabilities())
+        except ConnectionClosed:
+            return
+        self.serve_later(conn)
+
+    def _data_link_refused(self) -> None:
+        self.metrics.refused["data_link"] += 1
+
+    def _silent(self, address: str) -> None:
+        """A connection to the port that sent nothing within --handshake-timeout."""
+        self.metrics.refused["handshake"] += 1
+        event(self.log, "connection_rejected", logging.WARNING, address=address,
+              reason=f"nothing sent within {self.options.handshake_timeout:g} s")
 
     @property
     def ahead_buffered(self) -> int:

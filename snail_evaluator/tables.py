@@ -37,8 +37,10 @@ class GarblerSide(Attested):
 
     async def _serve_garbler(self, conn: Connection) -> None:
         while True:
-            # idle between sessions (a pooled connection): closed after --idle-timeout
-            msg, size = await self.next_message(conn, lambda: False)
+            # idle between sessions (a pooled connection): closed after --idle-timeout;
+            # a TLS connection whose data link carries the sessions is busy while it lives
+            msg, size = await self.next_message(
+                conn, lambda: not conn.data_link and conn.tied_open)
             kind = msg["t"]
             if kind == "session_start":
                 await self._garbler_session(conn, msg, size)

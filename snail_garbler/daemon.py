@@ -122,7 +122,7 @@ class GarblerDaemon(Attesting, Daemon):
         self.links = TableLinks(Replicas(evaluators, "--evaluator", "evaluator"), client_ctx,
                                 options.handshake_timeout,
                                 options.session_timeout + options.idle_timeout, logger,
-                                closed=self.connection_ended)
+                                closed=self.connection_ended, table_link=options.table_link)
         self.table_streams: set[Connection] = set()  # sessions' tables under way
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)
         self.owners = OwnerInputs(client_ctx, options.handshake_timeout, map_owners)

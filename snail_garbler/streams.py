@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 from snail_common.net import messages
 from snail_common.net.conn import Connection, connect
+from snail_common.net.datalink import TLS, dial
 from snail_common.net.errors import UNEXPECTED, ConnectionClosed, ProtocolError, RemoteError
 from snail_common.net.logs import event
 from snail_common.net.replicas import Address, Replicas
@@ -88,9 +89,10 @@ class TableLinks:
 
     def __init__(self, evaluators: Replicas, ctx, handshake_timeout: float,
                  verdict_timeout: float, log: logging.Logger,
-                 closed: Callable[[], None] = lambda: None) -> None:
+                 closed: Callable[[], None] = lambda: None, table_link: str = TLS) -> None:
         self.evaluators = evaluators
         self.ctx = ctx
+        self.table_link = table_link  # the tables' own connection beside TLS, or TLS
         self.handshake_timeout = handshake_timeout
         self.verdict_timeout = verdict_timeout  # a held reservation's verdict comes late
         self.log = log
@@ -157,8 +159,10 @@ class TableLinks:
             if conn.idle:
                 return conn
             await conn.close()  # something arrived while idle (a bye): not reusable
-        return await connect(*addr, self.ctx, "garbler", "evaluator", self.handshake_timeout,
-                             server_name=self.evaluators.server_name(addr))
+        control = await connect(*addr, self.ctx, "garbler", "evaluator",
+                                self.handshake_timeout,
+                                server_name=self.evaluators.server_name(addr))
+        return await dial(control, *addr, self.table_link, self.handshake_timeout)
 
     def _pool(self, addr: Address, conn: Connection) -> None:
         pool = self.idle.setdefault(addr, [])

@@ -2,9 +2,9 @@
 
 TLS passes through it untouched (it only moves bytes), so the daemons and the client see
 a real network fault: a peer that stops reading (``stall``), a partition that keeps both
-sockets open and silent (``partition``), a link cut with a reset (``cut``), or a slow
-link (``rate``). It runs its own event loop in a thread, so tests can drive blocking
-clients while it misbehaves.
+sockets open and silent (``partition``), a link cut with a reset (``cut``), a slow link
+(``rate``), or one that changes a byte on the way (``flip_in``). It runs its own event
+loop in a thread, so tests can drive blocking clients while it misbehaves.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ class _Pipe:
 
     reader: asyncio.StreamReader
     writer: asyncio.StreamWriter
+    upstream: bool  # from the proxy's client towards its target
     moved: int = 0
 
 
@@ -35,6 +36,9 @@ class FaultProxy:
     target: tuple[str, int]
     mode: str = "forward"  # forward | stall | partition
     rate_bytes_per_s: float | None = None
+    # this many bytes towards the target from now (over all connections), one bit of the
+    # next byte is flipped, once
+    flip_in: int | None = None
     port: int = 0
     bytes_forwarded: int = 0
     _loop: asyncio.AbstractEventLoop = field(default_factory=asyncio.new_event_loop)
@@ -98,8 +102,9 @@ class FaultProxy:
             return
         pair = [writer, up_writer]
         self._writers += pair
-        await asyncio.gather(self._pump(_Pipe(reader, up_writer)),
-                             self._pump(_Pipe(up_reader, writer)), return_exceptions=True)
+        await asyncio.gather(self._pump(_Pipe(reader, up_writer, True)),
+                             self._pump(_Pipe(up_reader, writer, False)),
+                             return_exceptions=True)
         for w in pair:
             w.close()
             with contextlib.suppress(ValueError):  # cut() may have cleared the list
@@ -121,6 +126,14 @@ class FaultProxy:
                 return
             while self.mode == "partition":
                 await asyncio.sleep(0.01)
+            at = self.flip_in
+            if pipe.upstream and at is not None:
+                if at < len(data):
+                    changed = bytearray(data)
+                    changed[at] ^= 1
+                    data, self.flip_in = bytes(changed), None
+                else:
+                    self.flip_in = at - len(data)
             pipe.writer.write(data)
             await pipe.writer.drain()
             pipe.moved += len(data)

@@ -17,6 +17,7 @@ from snail_common.gc.native.build import NativeUnavailable
 
 from .conn import parse_addr
 from .logs import announce
+from .messages import TABLE_LINKS
 from .service import Options
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -121,6 +122,16 @@ def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      default=registry.DEFAULT_MEMORY_BYTES / 2**30, show_default=True,
                      help="Compiled circuits kept in memory, in GiB of their arrays (the "
                           "most recent one always stays)."),
+        click.option("--table-link", type=click.Choice(TABLE_LINKS),
+                     default=defaults.table_link, show_default=True,
+                     help="How the garbler's tables travel to the evaluator; the same on "
+                          "both servers. aead: a second connection to the evaluator's port "
+                          "beside the TLS one, each ~1 MiB frame sealed with AES-256-GCM "
+                          "under a key fresh per link (handed over the mutual-TLS one). "
+                          "digest: that second connection unencrypted, integrity from the "
+                          "garbler's signed digest of the tables (for servers on a private "
+                          "link). tls: inside the TLS connection (one port; the slowest). "
+                          "docs/security.md weighs them."),
         click.option("--grace", type=click.FloatRange(0, 3600), default=defaults.grace,
                      show_default=True,
                      help="Seconds SIGTERM waits for running sessions to finish."),
@@ -141,6 +152,7 @@ def options_from(kwargs: dict[str, Any]) -> Options:
                    max_sessions_per_peer=kwargs["max_sessions_per_peer"],
                    max_ahead_per_peer=kwargs["max_ahead_per_peer"],
                    max_connections_per_peer=kwargs["max_connections_per_peer"],
+                   table_link=kwargs["table_link"],
                    tls_dir=kwargs["tls_dir"], metrics=kwargs["metrics"])
 
 

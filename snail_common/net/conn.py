@@ -44,6 +44,7 @@ from .errors import (
     RemoteError,
 )
 from .frames import MAX_FRAME, BodyPool, FrameReader, encode
+from .seal import FrameSeal
 from .tls import Identity, peer_identity
 
 SOFTWARE = "snail/0.1"
@@ -76,16 +77,22 @@ class Connection(asyncio.BufferedProtocol):
 
     def __init__(self, max_frame: int = MAX_FRAME, inbox: int = INBOX,
                  on_open: Callable[[Connection], None] | None = None,
-                 frame_timeout: float | None = None, pool: BodyPool | None = None) -> None:
-        self.peer_role = ""  # from the certificate, once connected
-        self.identity: Identity | None = None
+                 frame_timeout: float | None = None, pool: BodyPool | None = None,
+                 seal: FrameSeal | None = None, bound: Identity | None = None) -> None:
+        # a table data link (datalink.py) has no certificate of its own: its peer is the
+        # one its control connection verified (``bound``), its frames sealed or plain
+        self._bound = bound
+        self._seal = seal
+        self._tied: set[Connection] = set()  # connections that end with this one
+        self.peer_role = bound.role if bound is not None else ""  # from the certificate
+        self.identity: Identity | None = bound
         self.frame_timeout = frame_timeout  # a begun frame must be complete within this
         self._frame_timer: asyncio.TimerHandle | None = None
         self.peer: Any = None
         self.info: dict[str, Any] = {}  # the peer's hello or capabilities
         self.bytes_in = 0
         self.bytes_out = 0
-        self._frames = FrameReader(max_frame, pool)
+        self._frames = FrameReader(max_frame, pool, seal)
         self._inbox: asyncio.Queue = asyncio.Queue()
         self._inbox_size = inbox
         self._reading_paused = False
@@ -106,6 +113,8 @@ class Connection(asyncio.BufferedProtocol):
         self.transport = transport  # type: ignore[assignment]
         self.peer = transport.get_extra_info("peername")
         transport.set_write_buffer_limits(high=WRITE_HIGH)  # type: ignore[attr-defined]
+        if self._bound is not None:
+            return  # a data link handed over by its gate: the peer is known
         try:
             self.identity = peer_identity(transport.get_extra_info("ssl_object"))
             self.peer_role = self.identity.role
@@ -172,6 +181,7 @@ class Connection(asyncio.BufferedProtocol):
             if not waiter.done():
                 waiter.set_exception(self._lost)
         self._drain_waiters.clear()
+        self._cut_tied()
 
     def pause_writing(self) -> None:
         self._write_paused = True
@@ -255,7 +265,8 @@ class Connection(asyncio.BufferedProtocol):
         socket one write, not one per buffer (length, header, table data)."""
         if self._lost is not None or self.transport is None or self.transport.is_closing():
             raise ConnectionClosed(f"the connection to the {self.peer_role} is closed")
-        parts = encode(msg)
+        parts = encode(msg) if self._seal is None else self._seal.seal(
+            encode(msg), written=not self.transport.get_write_buffer_size())
         self.transport.writelines(parts)
         size = sum(len(p) for p in parts)
         self.bytes_out += size
@@ -306,6 +317,30 @@ class Connection(asyncio.BufferedProtocol):
         self._end(ConnectionClosed(f"the connection to the {self.peer_role} was aborted"))
         if self.transport is not None:
             self.transport.abort()
+        self._cut_tied()
+
+    def tie(self, other: Connection) -> None:
+        """End ``other`` with this one and this one with ``other`` (a table data link
+        and its control connection: neither is any use alone)."""
+        self._tied.add(other)
+        other._tied.add(self)
+
+    @property
+    def data_link(self) -> bool:
+        """Whether this is a table data link (its peer verified by another connection)."""
+        return self._bound is not None
+
+    @property
+    def tied_open(self) -> bool:
+        """Whether a connection tied to this one is still open (a control connection is
+        busy while its data link is)."""
+        return any(not other.ended for other in self._tied)
+
+    def _cut_tied(self) -> None:
+        tied, self._tied = self._tied, set()
+        for other in tied:
+            other._tied.discard(self)
+            other.abort()
 
 
 async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_role: str,

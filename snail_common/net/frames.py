@@ -21,6 +21,7 @@ import msgpack
 
 from .errors import MALFORMED, OVERSIZE, VERSION, ProtocolError
 from .messages import MAX_TEXT, validate
+from .seal import SLACK, TAG, FrameSeal
 
 PROTOCOL_VERSION = 1
 MAX_FRAME = 4 << 20  # bytes of one frame body; table frames are ~1 MiB
@@ -268,8 +269,10 @@ class FrameReader:
     MIN_FREE = 16 << 10
     POOL = 4 << 20  # bytes of recycled bodies a reader of its own keeps
 
-    def __init__(self, max_frame: int = MAX_FRAME, pool: BodyPool | None = None) -> None:
-        self.max_frame = max_frame
+    def __init__(self, max_frame: int = MAX_FRAME, pool: BodyPool | None = None,
+                 seal: FrameSeal | None = None) -> None:
+        self._seal = seal  # a sealed link's bodies are opened before they are decoded
+        self.max_frame = max_frame + (TAG if seal is not None else 0)
         self._pool = pool if pool is not None else BodyPool(self.POOL)
         self._small = bytearray(self.SMALL)
         self._start = self._end = 0
@@ -303,10 +306,7 @@ class FrameReader:
             if self._big_pos < self._big_len:
                 return []
             length, self._big_len = self._big_len, 0
-            msg = decode(memoryview(self._big)[:length], lend=True)
-            if lent(msg):  # the frame keeps this buffer; the next body takes another
-                self._big = bytearray(0)
-            return [(msg, LENGTH.size + length)] + self._parse()
+            return [(self._decode_big(length), LENGTH.size + length)] + self._parse()
         self._end += n
         return self._parse()
 
@@ -321,7 +321,8 @@ class FrameReader:
             have = self._end - body
             if have >= length:
                 with memoryview(buf) as view:
-                    out.append((decode(view[body : body + length]), LENGTH.size + length))
+                    out.append((self._decode_small(view[body : body + length]),
+                                LENGTH.size + length))
                 self._start = body + length
             elif length > self.BIG:
                 self._big_pos = 0
@@ -337,6 +338,28 @@ class FrameReader:
         if self._start == self._end:
             self._start = self._end = 0
         return out
+
+    def _decode_small(self, body: memoryview) -> dict[str, Any]:
+        if self._seal is None:
+            return decode(body)
+        plain = bytearray(len(body) + SLACK)
+        return decode(memoryview(plain)[: self._seal.open(body, memoryview(plain))])
+
+    def _decode_big(self, length: int) -> dict[str, Any]:
+        """The message in the body buffer: a ``tables`` frame's data stays a view of the
+        buffer it is in (of the body's, or on a sealed link of the one it was opened
+        into), and the next body goes to another."""
+        body = memoryview(self._big)[:length]
+        if self._seal is None:
+            msg = decode(body, lend=True)
+            if lent(msg):
+                self._big = bytearray(0)
+            return msg
+        plain = self._pool.take(length + SLACK) or bytearray(length + SLACK)
+        msg = decode(memoryview(plain)[: self._seal.open(body, memoryview(plain))], lend=True)
+        if not lent(msg):
+            self._pool.give(plain)
+        return msg
 
     def release(self) -> None:
         """Drop the body buffers (after a refused frame: nothing more will be read)."""

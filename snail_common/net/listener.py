@@ -79,6 +79,20 @@ class Listener:
         """What the ``listening`` line adds for this daemon."""
         return {}
 
+    def capabilities_for(self, conn: Connection) -> dict[str, Any]:
+        """The ``capabilities`` a verified peer gets (its role is known by now)."""
+        return self.capabilities()
+
+    async def listen(self, host: str, port: int, ctx: ssl.SSLContext,
+                     factory: Callable[[], Connection]) -> Any:
+        """The listening server: TLS connections made by ``factory`` (the evaluator
+        shares its port with the table data links: sharedport.py)."""
+        server = await asyncio.get_running_loop().create_server(
+            factory, host, port, ssl=ctx, ssl_handshake_timeout=self.options.handshake_timeout)
+        for sock in server.sockets:  # accepted links inherit it (conn.py module doc)
+            prefer_bursts(sock)
+        return server
+
     async def serve(self, conn: Connection) -> None:
         raise NotImplementedError
 
@@ -122,7 +136,7 @@ class Listener:
     async def _on_connect(self, conn: Connection) -> None:
         address = str(conn.peer)
         try:
-            await accept(conn, self.capabilities(), self.allowed,
+            await accept(conn, self.capabilities_for(conn), self.allowed,
                          self.options.handshake_timeout, self._refusal)
         except (ProtocolError, RemoteError, ConnectionClosed, TimeoutError) as exc:
             # a container's health check presents the server's own certificate: not news
@@ -132,6 +146,17 @@ class Listener:
             event(self.log, "connection_rejected", logging.DEBUG if own else logging.WARNING,
                   peer=conn.peer_name, address=address, reason=str(exc))
             return
+        await self._serve_admitted(conn, address)
+
+    def serve_later(self, conn: Connection) -> None:
+        """Serve a connection admitted some other way (a data link, by its token) in a
+        task of its own, as the TLS connections are."""
+        task = asyncio.get_running_loop().create_task(
+            self._serve_admitted(conn, str(conn.peer)))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _serve_admitted(self, conn: Connection, address: str) -> None:
         self.connections.add(conn)
         try:
             event(self.log, "connection_open", peer=conn.peer_name, address=address,
@@ -158,13 +183,9 @@ class Listener:
         if hasattr(signal, "SIGHUP"):
             loop.add_signal_handler(signal.SIGHUP, self.reload_revoked)
         _audit_handshakes(ctx, self._refused)
-        server = await loop.create_server(
-            lambda: Connection(MAX_FRAME, on_open=self._opened,
-                               frame_timeout=self.options.session_timeout, pool=self.bodies),
-            host, port, ssl=ctx,
-            ssl_handshake_timeout=self.options.handshake_timeout)
-        for sock in server.sockets:  # accepted links inherit it (conn.py module doc)
-            prefer_bursts(sock)
+        server = await self.listen(host, port, ctx, lambda: Connection(
+            MAX_FRAME, on_open=self._opened, frame_timeout=self.options.session_timeout,
+            pool=self.bodies))
         announce(self.log, "listening", host=host, port=server.sockets[0].getsockname()[1],
                  pid=os.getpid(), instance=self.instance,
                  max_sessions=self.options.max_sessions,

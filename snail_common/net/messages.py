@@ -17,7 +17,10 @@ garbler -> evaluator         ``session_start``, ``tables`` ..., ``tables_end`` (
                              at a time per connection); evaluator answers ``done`` or
                              ``error``; an ``error`` {sid} from either side ends that
                              session's stream early, answered by the other side's ``error``
-                             {sid} (snail_garbler/streams.py)
+                             {sid} (snail_garbler/streams.py); with ``--table-link``
+                             ``aead`` or ``digest`` these go on the table data link,
+                             whose token (``link_token``) and key (``link_key``) the
+                             evaluator's ``capabilities`` carry (net/datalink.py)
 garbler -> client            ``output_zero_labels`` chunks, then ``stats``; or ``error``
 evaluator -> client          ``output_labels`` chunks, then ``stats``; or ``error``
 
@@ -72,6 +75,7 @@ from snail_common.gc.stream import SCHEMES
 from .errors import MALFORMED, MISSING_FIELD, UNKNOWN_FIELD, UNKNOWN_TYPE, ProtocolError
 
 ROLES = ("client", "garbler", "evaluator", "mapowner")
+TABLE_LINKS = ("tls", "aead", "digest")  # how the tables travel (datalink.py)
 SID_BYTES = 16
 LABEL_BYTES = 16
 LABEL_CHUNK = 1 << 16  # labels per chunk: 1 MiB
@@ -183,7 +187,9 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "capabilities": ({"role": one_of(ROLES), "software": text(64), "max_frame": count,
                       "families": text_list, "max_sessions": count},
                      {"max_and_gates": count, "instance": text(64),
-                      "signing_key": public_key, "key_endorsement": endorsement}),
+                      "signing_key": public_key, "key_endorsement": endorsement,
+                      "table_link": one_of(TABLE_LINKS), "link_token": blob(32),
+                      "link_key": blob(32)}),
     "session_start": ({"sid": sid, "circuit": circuit, "hash": content_hash},
                       {"scheme": scheme, "ahead": flag, "signer": public_key}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
@@ -204,7 +210,8 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "health_request": ({}, {}),
     "health": ({"role": one_of(ROLES), "sessions": number_map(int), "uptime_s": seconds},
                {"engine": one_of(ENGINES), "engine_reason": text(), "engine_threads": count,
-                "failpoints": text_list, "signing_key": text(2 * PUBLIC_KEY_BYTES)}),
+                "failpoints": text_list, "signing_key": text(2 * PUBLIC_KEY_BYTES),
+                "table_link": one_of(TABLE_LINKS)}),
     "error": ({"code": text(64), "message": text()}, {"sid": sid}),
     "bye": ({}, {}),
     # the map-owner setting

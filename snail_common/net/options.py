@@ -37,5 +37,7 @@ class Options:
     # up to 3 ahead, and those its runs have taken are reservations here until streamed
     max_ahead_per_peer: int = 8
     max_connections_per_peer: int = 64
+    # how the garbler's tables travel to the evaluator (datalink.py), the same on both
+    table_link: str = "aead"
     tls_dir: str | None = None  # where revoked.txt is read from (at start and on SIGHUP)
     metrics: tuple[str, int] | None = None  # HTTPS endpoint for /metrics and /health

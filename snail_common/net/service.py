@@ -6,7 +6,8 @@ the GIL, and the event loop stays free for other sessions, TLS and health reques
 The TLS server itself, revocation and shutdown are ``listener.Listener``'s.
 
 Every session ends with one JSON log line ``{"event": "session", "peer", "circuit",
-"and", "bytes_in", "bytes_out", "seconds", "outcome"}`` (outcome ``ok`` or an error code),
+"and", "bytes_in", "bytes_out", "seconds", "outcome", "table_link"}`` (outcome ``ok`` or
+an error code; ``table_link`` the daemon's ``--table-link``),
 and the same numbers feed the counters of ``health`` and ``--metrics``.
 """
 
@@ -103,13 +104,14 @@ class Daemon(Listener):
             self.engine["engine_threads"] = int(status["threads"])
 
     def startup_fields(self) -> dict[str, Any]:
-        return self.engine
+        return {**self.engine, "table_link": self.options.table_link}
 
     def health(self) -> dict[str, Any]:
         armed = failpoints.armed()  # a daemon that misbehaves on purpose says so
         return messages.make("health", role=self.role, sessions=self.metrics.health(),
                              uptime_s=round(time.monotonic() - self.started, 3),
-                             **self.engine, **({"failpoints": armed} if armed else {}))
+                             table_link=self.options.table_link, **self.engine,
+                             **({"failpoints": armed} if armed else {}))
 
     def prometheus(self) -> str:
         return self.metrics.prometheus()
@@ -237,7 +239,8 @@ class Daemon(Listener):
         fields: dict[str, Any] = {"peer": peer, "sid": sid, "circuit": circuit,
                                   "and": n_and, "bytes_in": bytes_in,
                                   "bytes_out": bytes_out, "seconds": round(seconds, 4),
-                                  "outcome": outcome}
+                                  "outcome": outcome,
+                                  "table_link": self.options.table_link}
         if scheme:
             fields["scheme"] = scheme
         if reason:

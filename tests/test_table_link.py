@@ -1,0 +1,332 @@
+"""The table link (--table-link tls | aead | digest, snail_common/net/datalink.py): each
+mode gives the cleartext circuit's answer and says which it is; a byte changed on the
+server link fails the run naming that link; a stranger or a replayed token on the data
+port is dropped and logged; servers set to different modes refuse, naming the flag."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import socket
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fault_proxy import FaultProxy
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from snail_client.blocking import SecureRunner
+from snail_client.embedded import Daemon, make_certs, start_daemon
+from snail_client.links import ServiceError
+from snail_common.circuit import evaluate_bits, registry
+from snail_common.net import errors, tls
+from snail_common.net.conn import connect, new_event_loop, parse_addr
+from snail_common.net.datalink import PREAMBLE
+from snail_common.net.frames import FrameReader, decode, encode
+from snail_common.net.seal import (
+    EVALUATOR_TO_GARBLER,
+    GARBLER_TO_EVALUATOR,
+    SLACK,
+    FrameSeal,
+)
+
+MODES = ("tls", "aead", "digest")
+IDLE_S = 4  # the daemons' --idle-timeout (the garbler's pool closes its idle links at 5 s)
+SMALL = "ops/fadd-x1"
+LARGE = "ops/fmul-x256"  # ~7 MB of tables: a byte well inside the stream can be changed
+FLIP_IN = 3 << 19  # 1.5 MiB into the next run's stream: inside the second frame's tables
+# what the client hears when a byte of the tables changed on the server link, per mode
+CHANGED = {"tls": "garbler's table stream",
+           "aead": "garbler's table stream: frame .* fails its seal: changed on the wire",
+           "digest": "not the ones the garbler signed .* the garbler or the server link"}
+
+
+# ---- the seal -------------------------------------------------------------------------
+def sealed_pair() -> tuple[FrameSeal, FrameSeal]:
+    key = os.urandom(32)
+    return (FrameSeal(key, GARBLER_TO_EVALUATOR, EVALUATOR_TO_GARBLER),
+            FrameSeal(key, EVALUATOR_TO_GARBLER, GARBLER_TO_EVALUATOR))
+
+
+def tables(n: int, sid: bytes = bytes(16)) -> dict:
+    return {"t": "tables", "sid": sid, "data": os.urandom(n)}
+
+
+def opened(receiver: FrameSeal, frame: list) -> bytes:
+    body = b"".join(bytes(p) for p in frame[1:])
+    out = bytearray(len(body) + SLACK)
+    return bytes(out[: receiver.open(memoryview(body), memoryview(out))])
+
+
+def test_a_sealed_frame_opens_to_its_body_and_hides_it():
+    garbler, evaluator = sealed_pair()
+    msg = tables(100_000)
+    frame = garbler.seal(encode(msg))
+    plain = b"".join(bytes(p) for p in encode(msg)[1:])
+    assert msg["data"] not in b"".join(bytes(p) for p in frame)
+    assert opened(evaluator, frame) == plain
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 20_000 + 40))
+def test_any_changed_byte_fails_the_seal(at):
+    garbler, evaluator = sealed_pair()
+    frame = garbler.seal(encode(tables(20_000)))
+    body = bytearray(b"".join(bytes(p) for p in frame[1:]))
+    body[at % len(body)] ^= 0x80
+    with pytest.raises(errors.ProtocolError) as err:
+        opened(evaluator, [frame[0], bytes(body)])
+    assert err.value.code == errors.LINK
+
+
+def test_a_replayed_reordered_or_reflected_frame_fails_the_seal():
+    garbler, evaluator = sealed_pair()
+    first, second = (garbler.seal(encode(tables(1000))) for _ in range(2))
+    opened(evaluator, first)
+    with pytest.raises(errors.ProtocolError):  # the first again, in the second's place
+        opened(evaluator, first)
+    garbler, evaluator = sealed_pair()
+    first, second = (garbler.seal(encode(tables(1000))) for _ in range(2))
+    with pytest.raises(errors.ProtocolError):  # out of order
+        opened(evaluator, second)
+    garbler, _ = sealed_pair()
+    with pytest.raises(errors.ProtocolError):  # sent back to its sender
+        opened(garbler, garbler.seal(encode(tables(1000))))
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.lists(st.integers(1, 300_000), min_size=1, max_size=12))
+def test_a_sealed_stream_read_in_any_pieces_gives_its_frames(cuts):
+    garbler, evaluator = sealed_pair()
+    sent = [tables(n) for n in (1_200_000, 50, 300_000)] + [{"t": "done", "sid": bytes(16)}]
+    wire = b"".join(bytes(p) for m in sent for p in garbler.seal(encode(m)))
+    reader = FrameReader(seal=evaluator)
+    got, at, i = [], 0, 0
+    while at < len(wire):
+        buf = reader.buffer()
+        n = min(len(buf), cuts[i % len(cuts)], len(wire) - at)
+        buf[:n] = wire[at : at + n]
+        got += [m for m, _ in reader.filled(n)]
+        at, i = at + n, i + 1
+    assert [m["t"] for m in got] == [m["t"] for m in sent]
+    for m, want in zip(got[:3], sent[:3]):
+        assert bytes(m["data"]) == want["data"]
+    assert isinstance(got[0]["data"], memoryview)  # the big frame's data is lent, not copied
+
+
+# ---- real daemons ---------------------------------------------------------------------
+@dataclass
+class Pair:
+    """An evaluator and a garbler in one mode, the garbler's link through a proxy."""
+
+    mode: str
+    root: Path
+    tls_dir: Path
+    evaluator: Daemon
+    garbler: Daemon
+    proxy: FaultProxy
+
+    def client(self) -> SecureRunner:
+        return SecureRunner(self.garbler.address, self.evaluator.address, self.tls_dir,
+                            timeout=120)
+
+    def lines(self, role: str, kind: str) -> list[dict]:
+        log = getattr(self, role).log
+        return [e for e in map(json.loads, log.read_text().splitlines())
+                if e.get("event") == kind]
+
+
+@contextlib.contextmanager
+def pair_of(root: Path, evaluator_mode: str, garbler_mode: str) -> Iterator[Pair]:
+    tls_dir = make_certs(root / "tls")
+    env = {"SNAIL_CACHE_DIR": os.environ["SNAIL_CACHE_DIR"]}
+    flags = ["--tls-dir", str(tls_dir), "--log-level", "info", "--session-timeout", "10",
+             "--handshake-timeout", "3", "--idle-timeout", str(IDLE_S)]
+    evaluator = start_daemon("evaluator", [*flags, "--table-link", evaluator_mode],
+                             root / "evaluator.log", env=env)
+    try:
+        with FaultProxy(parse_addr(evaluator.address)) as proxy:
+            garbler = start_daemon("garbler", [*flags, "--table-link", garbler_mode,
+                                               "--evaluator", proxy.address],
+                                   root / "garbler.log", env=env)
+            try:
+                yield Pair(evaluator_mode, root, tls_dir, evaluator, garbler, proxy)
+            finally:
+                garbler.stop()
+    finally:
+        evaluator.stop()
+
+
+@pytest.fixture(scope="module", params=MODES)
+def pair(request, tmp_path_factory):
+    registry.compiled(LARGE)  # on disk before the daemons need it
+    with pair_of(tmp_path_factory.mktemp(request.param), request.param,
+                 request.param) as p:
+        yield p
+
+
+def cleartext(circuit_id: str, bits: np.ndarray) -> np.ndarray:
+    _, schedule = registry.compiled(circuit_id)
+    return evaluate_bits(schedule, bits[None])[0]
+
+
+def random_bits(circuit_id: str, seed: int = 0) -> np.ndarray:
+    _, schedule = registry.compiled(circuit_id)
+    return np.random.default_rng(seed).random(schedule.n_inputs) < 0.5
+
+
+def test_each_mode_gives_the_cleartext_answer_and_says_which_it_is(pair):
+    with pair.client() as client:
+        for circuit_id in (SMALL, LARGE):
+            bits = random_bits(circuit_id)
+            np.testing.assert_array_equal(client.run(circuit_id, bits),
+                                          cleartext(circuit_id, bits))
+        for role in ("garbler", "evaluator"):
+            assert client.health(role)["table_link"] == pair.mode
+    for role in ("garbler", "evaluator"):
+        sessions = pair.lines(role, "session")
+        assert len(sessions) >= 2 and {s["table_link"] for s in sessions} == {pair.mode}
+        assert pair.lines(role, "listening")[0]["table_link"] == pair.mode
+    links = pair.lines("evaluator", "data_link_open")
+    assert (len(links) >= 1) == (pair.mode != "tls")
+
+
+def test_a_byte_changed_on_the_server_link_fails_the_run_naming_it(pair):
+    bits = random_bits(LARGE, 1)
+    pair.proxy.flip_in = FLIP_IN
+    try:
+        with pair.client() as client, pytest.raises(ServiceError, match=CHANGED[pair.mode]):
+            client.run(LARGE, bits)
+    finally:
+        pair.proxy.flip_in = None
+    with pair.client() as client:  # the next run is served on a new link
+        np.testing.assert_array_equal(client.run(LARGE, bits), cleartext(LARGE, bits))
+
+
+def closed_by_peer(sock: socket.socket) -> bytes:
+    """What the server sent before it closed (or reset) the connection (a minute's hang
+    guard: a server that keeps it open fails the test with a timeout)."""
+    sock.settimeout(60)
+    got = b""
+    with contextlib.suppress(ConnectionResetError):
+        while chunk := sock.recv(65536):
+            got += chunk
+    return got
+
+
+def refusals(pair: Pair, before: int, count: int = 1) -> list[dict]:
+    """The evaluator's ``data_link_refused`` lines after the first ``before``, once there
+    are ``count`` of them (they follow the close: polled, a minute's hang guard)."""
+    deadline = time.monotonic() + 60
+    while len(lines := pair.lines("evaluator", "data_link_refused")) < before + count:
+        assert time.monotonic() < deadline, "no data_link_refused line"
+        time.sleep(0.05)
+    return lines[before:]
+
+
+def test_a_stranger_on_the_port_is_dropped_and_logged(pair):
+    if pair.mode == "tls":
+        pytest.skip("in tls mode the port speaks TLS only (test_service_e2e's rejections)")
+    before = len(pair.lines("evaluator", "data_link_refused"))
+    with socket.create_connection(parse_addr(pair.evaluator.address)) as sock:
+        sock.sendall(PREAMBLE + os.urandom(32) + b"more bytes a stranger sends")
+        assert closed_by_peer(sock) == b""
+    assert "no valid token" in refusals(pair, before)[0]["reason"]
+    with pair.client() as client:
+        np.testing.assert_array_equal(client.run(SMALL, random_bits(SMALL)),
+                                      cleartext(SMALL, random_bits(SMALL)))
+
+
+def read_frame(sock: socket.socket) -> bytes:
+    """One frame's body (a minute's hang guard)."""
+    sock.settimeout(60)
+    head = sock.recv(4, socket.MSG_WAITALL)
+    return sock.recv(int.from_bytes(head, "big"), socket.MSG_WAITALL)
+
+
+@contextlib.contextmanager
+def data_link(pair: Pair) -> Iterator[tuple[socket.socket, dict]]:
+    """A data link opened by hand (this test presents the garbler's certificate over
+    TLS, as the garbler does): its socket, once the evaluator's capabilities came back
+    on it, and what the TLS connection's capabilities granted."""
+    host, port = parse_addr(pair.evaluator.address)
+    loop = new_event_loop()
+    try:
+        control = loop.run_until_complete(connect(
+            host, port, tls.client_context(pair.tls_dir, "garbler"), "garbler", "evaluator",
+            server_name=host))
+        with socket.create_connection((host, port)) as sock:
+            sock.sendall(PREAMBLE + control.info["link_token"])
+            body = read_frame(sock)
+            if pair.mode == "aead":
+                seal = FrameSeal(control.info["link_key"], GARBLER_TO_EVALUATOR,
+                                 EVALUATOR_TO_GARBLER)
+                out = bytearray(len(body) + SLACK)
+                body = bytes(out[: seal.open(memoryview(body), memoryview(out))])
+            assert decode(body)["t"] == "capabilities"
+            yield sock, control.info
+        control.abort()
+    finally:
+        loop.close()
+
+
+def test_a_token_is_good_once(pair):
+    if pair.mode == "tls":
+        pytest.skip("tls mode hands out no token")
+    address = parse_addr(pair.evaluator.address)
+    before = len(pair.lines("evaluator", "data_link_refused"))
+    with data_link(pair) as (_, granted), socket.create_connection(address) as again:
+        again.sendall(PREAMBLE + granted["link_token"])  # a replay: dropped
+        assert closed_by_peer(again) == b""
+    assert "no valid token" in refusals(pair, before)[0]["reason"]
+
+
+def test_an_idle_data_link_is_closed_after_the_idle_timeout(pair):
+    """Its TLS connection is busy while the link lives; the link itself idles out (and
+    takes the TLS connection with it)."""
+    if pair.mode == "tls":
+        pytest.skip("tls mode has no data link")
+    with data_link(pair) as (sock, _):
+        t0 = time.monotonic()
+        closed_by_peer(sock)  # the evaluator's timeout error, then the close
+        assert time.monotonic() - t0 >= IDLE_S * 0.9
+
+
+def test_a_connection_that_sends_nothing_is_closed_after_the_handshake_timeout(pair):
+    if pair.mode == "tls":
+        pytest.skip("tls mode: the TLS handshake timeout (asyncio's own)")
+    with socket.create_connection(parse_addr(pair.evaluator.address)) as sock:
+        t0 = time.monotonic()
+        assert closed_by_peer(sock) == b""
+        assert time.monotonic() - t0 >= 3 * 0.9  # never before --handshake-timeout
+    assert any("nothing sent within 3 s" in e["reason"]
+               for e in pair.lines("evaluator", "connection_rejected"))
+
+
+@pytest.mark.parametrize("evaluator_mode, garbler_mode", [("aead", "tls"), ("tls", "digest")])
+def test_servers_in_different_modes_refuse_naming_the_flag(tmp_path, evaluator_mode,
+                                                           garbler_mode):
+    with pair_of(tmp_path, evaluator_mode, garbler_mode) as p, p.client() as client, \
+            pytest.raises(ServiceError, match="--table-link must be the same on both"):
+        client.run(SMALL, random_bits(SMALL))
+
+
+def test_the_data_link_and_its_tls_connection_end_together():
+    """Either end of a tied pair ends the other (a data link is no use alone)."""
+    from snail_common.net.conn import Connection
+
+    async def scenario() -> list[bool]:
+        a, b, c = Connection(), Connection(), Connection()
+        a.tie(b)
+        assert a.tied_open and b.tied_open
+        b.abort()
+        c.abort()
+        return [a.ended, b.ended, c.ended, a.tied_open]
+
+    assert asyncio.run(scenario()) == [True, True, True, False]
