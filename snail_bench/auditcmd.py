@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from .choices import ARITH, circuit_options
+from .choices import ARITH, TABLE_LINK, circuit_options
 from .choices import spec as _spec
 
 
@@ -25,9 +25,11 @@ from .choices import spec as _spec
               help="Batches per circuit: the spread reported is theirs.")
 @click.option("--audits", "n_audits", type=click.IntRange(1, 1000), default=5,
               show_default=True, help="Client audits timed per circuit.")
+@TABLE_LINK
 @ARITH
 def audits(algorithm: str, mode: str, solve: str | None, solver: str, arith: str | None,
-           points: tuple[int, ...], repeat: int, batches: int, n_audits: int) -> None:
+           points: tuple[int, ...], repeat: int, batches: int, n_audits: int,
+           table_link: str | None) -> None:
     """The cost of the signed digests and of the client's audits, per circuit: the
     garbler's digest and signature and the evaluator's digest and check as a share of
     that server's CPU per run (target: at most 10 %), and the client's CPU per audited
@@ -38,7 +40,7 @@ def audits(algorithm: str, mode: str, solve: str | None, solver: str, arith: str
         specs = [_spec(algorithm, mode, solve, solver, n, arith) for n in points or (6,)]
     except ValueError as exc:
         raise click.UsageError(str(exc)) from None
-    click.echo(json.dumps(audit_report(specs, repeat, batches, n_audits)))
+    click.echo(json.dumps(audit_report(specs, repeat, batches, n_audits, table_link)))
 
 
 @click.command("verify-evidence")

@@ -35,6 +35,8 @@ from snail_common.gc.stream import BYTES_PER_AND, HEADER, SCHEME_HALF_GATES
 from snail_common.pnp.spec import Spec
 from snail_garbler.daemon import frame_plan
 
+from .choices import link_args
+
 _CPUCLOCK_SCHED = 2  # Linux: a process CPU clock id is (~pid << 3) | CPUCLOCK_SCHED
 _IN_CACHE_PASSES = 50
 # each server's stats: its hashing seconds, then its signature (or check) seconds
@@ -53,16 +55,19 @@ def _spread(values: list[float]) -> dict[str, float]:
             "max": round(max(values), 6)}
 
 
-def audit_report(specs: list[Spec], repeat: int, batches: int, audits: int) -> dict:
-    """Per circuit: the servers' attestation shares and the client's audit costs."""
+def audit_report(specs: list[Spec], repeat: int, batches: int, audits: int,
+                 table_link: str | None = None) -> dict:
+    """Per circuit: the servers' attestation shares and the client's audit costs, with
+    the daemons' ``--table-link`` (None: their default; the report names the one used)."""
     out: dict[str, dict] = {}
-    with embedded_services() as svc, SecureRunner(svc.garbler_addr, svc.evaluator_addr,
-                                                  svc.tls_dir, scheme="halfgates",
-                                                  audit_rate=0.0) as runner:
+    with embedded_services(extra_args=link_args(table_link)) as svc, SecureRunner(
+            svc.garbler_addr, svc.evaluator_addr, svc.tls_dir, scheme="halfgates",
+            audit_rate=0.0) as runner:
         pids = {"garbler": svc.garbler.process.pid, "evaluator": svc.evaluator.process.pid}
         for spec in specs:
             out[spec.registry_id] = _measure(runner, spec, pids, repeat, batches, audits)
-    return {"audits": out}
+        link = runner.health("evaluator").get("table_link", "tls")
+    return {"audits": out, "table_link": link}
 
 
 def _in_cache_rate(frame_bytes: int) -> float:

@@ -8,9 +8,22 @@ from collections.abc import Callable
 
 import click
 
+from snail_common.net.messages import TABLE_LINKS
 from snail_common.pnp.spec import Spec
 
 SERVICE_POINTS = (6, 12)  # what `service` and `netem` measure unless --points says otherwise
+
+# --table-link of service and audits
+TABLE_LINK = click.option(
+    "--table-link", type=click.Choice(TABLE_LINKS), default=None,
+    help="Embedded daemons only: their --table-link (how the tables travel from garbler to "
+         "evaluator; default: the daemons' own). The JSON says which served.")
+
+
+def link_args(table_link: str | None) -> tuple[str, ...]:
+    """The embedded daemons' flags for ``--table-link`` (none: their default)."""
+    return ("--table-link", table_link) if table_link else ()
+
 
 # --arith of circuit, service and accuracy
 ARITH = click.option("--arith", type=click.Choice(["fixed", "float"]),

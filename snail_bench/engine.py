@@ -11,9 +11,9 @@ Rates are the best of a few runs (the first pays for page faults and cold caches
 - end to end: garbler and evaluator in two processes over loopback TCP, frame by frame, so
   evaluation of frame k overlaps garbling of frame k+1; the result is decoded and checked;
 - bytes per AND: the garbler -> evaluator stream of the wide circuit (header excluded);
-- TLS and sockets: bytes per CPU second of the daemons' TLS path (encrypting into and
-  decrypting from memory BIOs) and of loopback TCP (transport.py): with the AND rates,
-  the CPU floor of a table stream on this host.
+- TLS, the seal and sockets: bytes per CPU second of the daemons' TLS path (encrypting
+  into and decrypting from memory BIOs), of the table link's aead seal and of loopback
+  TCP (transport.py): with the AND rates, the CPU floor of a table stream on this host.
 Each scheme asked for is measured on the same circuits; the first one's numbers are the
 report's top-level fields (with its ``scheme``), every scheme's are under ``schemes``, and
 with both, ``bytes_ratio`` is three-halves' stream over half-gates'.
@@ -54,7 +54,7 @@ from snail_common.gc.aes import AesBatch, byte_view
 from snail_common.gc.native.run import THREADS_ENV, kernel_threads, program_for
 from snail_common.gc.stream import BLOCK_GATES, DEFAULT_SCHEME, HEADER, SCHEMES
 
-from .transport import socket_rate, tls_rates
+from .transport import seal_rates, socket_rate, tls_rates
 
 WIDE_LANES = 1 << 15  # AND steps of 32 Ki and 64 Ki gates
 WIDE_LAYERS = 192  # 6.3 M AND gates
@@ -127,10 +127,12 @@ def _engine_report(wide_layers: int, deep_layers: int, schemes: tuple[str, ...],
     serving = engines.engine_status()
     top = serving["engine"] if serving["engine"] in per_engine else names[0]
     encrypt, decrypt = tls_rates()
+    seal, open_ = seal_rates()
     report = {**per_engine[top], "serving": serving["engine"],
               "aes_blocks_per_s": round(_aes_rate()),
               "tls_encrypt_bytes_per_s": round(encrypt),
               "tls_decrypt_bytes_per_s": round(decrypt),
+              "seal_bytes_per_s": round(seal), "open_bytes_per_s": round(open_),
               "socket_bytes_per_s": round(socket_rate())}
     if "reason" in serving:
         report["native_unavailable"] = serving["reason"]

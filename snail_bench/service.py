@@ -35,20 +35,23 @@ from snail_common.loc.backends import frame_wires
 from snail_common.net.linkrates import AUTO
 from snail_common.pnp.spec import Spec
 
+from .choices import link_args
+
 
 def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
                    evaluator: str | None = None, tls_dir: str | None = None,
                    clients: int = 1, lane_window_ms: float | None = None,
                    quiet: bool = True,
                    on_done: Callable[[str, dict], object] | None = None,
-                   scheme: str = AUTO) -> dict:
+                   scheme: str = AUTO, table_link: str | None = None) -> dict:
     """``{"service": {circuit_id: {...}}}``: per circuit, the first run and ``repeat``
     warm runs (median, min, max wall seconds), bytes per link and server timings of one
     run, and (embedded daemons only) each server's peak RSS so far: a high-water mark
     over the daemon's life, so with several circuits it covers the largest run yet."""
     report: dict[str, dict] = {}
     lanes = () if lane_window_ms is None else ("--lane-window-ms", str(lane_window_ms))
-    with connected(garbler, evaluator, tls_dir, lanes, scheme=scheme) as (runner, services), \
+    with connected(garbler, evaluator, tls_dir, lanes + link_args(table_link),
+                   scheme=scheme) as (runner, services), \
             bar(len(specs), "circuits", quiet, "circuit") as progress:
         for spec in specs:
             report[spec.circuit_id] = _measure(runner, spec, repeat)
@@ -61,7 +64,8 @@ def service_report(specs: list[Spec], repeat: int, garbler: str | None = None,
             progress.update(1)
             if on_done is not None:
                 on_done(spec.circuit_id, report[spec.circuit_id])
-    return {"service": report}
+        link = runner.health("evaluator").get("table_link", "tls")
+    return {"service": report, "table_link": link}
 
 
 def _measure(runner: SecureRunner, spec: Spec, repeat: int) -> dict:

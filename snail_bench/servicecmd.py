@@ -12,7 +12,7 @@ import click
 
 from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
 
-from .choices import ARITH, SERVICE_POINTS, circuit_options
+from .choices import ARITH, SERVICE_POINTS, TABLE_LINK, circuit_options
 from .choices import spec as _spec
 
 
@@ -49,13 +49,14 @@ from .choices import spec as _spec
               "gates (0: it is an OT, no circuit), the map owner's OT time per invocation "
               "and selection time per frame (from its session log) and bytes per link. "
               "Embedded daemons only; implies --solve circuit, --algorithm lm, --mode sil.")
+@TABLE_LINK
 @ARITH
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def service(algorithm: str, mode: str, solve: str | None, solver: str,
             arith: str | None, points: tuple[int, ...], repeat: int,
             garbler: str | None, evaluator: str | None, tls_dir: str | None,
             clients: int, lane_window_ms: float | None, scheme: str,
-            map_points: tuple[int, ...], as_json: bool) -> None:
+            map_points: tuple[int, ...], table_link: str | None, as_json: bool) -> None:
     """End to end over TLS: wall time of a secure invocation (first and warm runs), bytes
     per link, and the servers' peak memory. Circuits are compiled on first use. With
     --map-points, also what the map-owner setting adds (a "map_owner" section)."""
@@ -76,6 +77,9 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
     if lane_window_ms is not None and garbler:
         raise click.UsageError("--lane-window-ms sets the embedded daemons; start "
                                "remote ones with it instead")
+    if table_link is not None and garbler:
+        raise click.UsageError("--table-link sets the embedded daemons; start remote ones "
+                               "with it instead")
     flags = click.get_current_context().find_object(dict) or {}
 
     def done(name: str, row: dict) -> None:
@@ -85,7 +89,7 @@ def service(algorithm: str, mode: str, solve: str | None, solver: str,
 
     _print_service(lambda: service_report(specs, repeat, garbler, evaluator, tls_dir, clients,
                                           lane_window_ms, flags.get("quiet", False), done,
-                                          scheme),
+                                          scheme, table_link),
                    as_json, _show_service)
 
 

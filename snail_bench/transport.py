@@ -1,4 +1,5 @@
-"""What this host's TLS and loopback sockets cost per byte: the floor under a table stream.
+"""What this host's TLS, the table link's seal and loopback sockets cost per byte: the
+floor under a table stream.
 
 The daemons' TLS runs through memory BIOs (uvloop's SSL layer): the garbler encrypts every
 table byte into its outgoing BIO and reads it out for the socket, the evaluator writes
@@ -16,6 +17,14 @@ import tempfile
 import threading
 import time
 
+from snail_common.net.seal import (
+    EVALUATOR_TO_GARBLER,
+    GARBLER_TO_EVALUATOR,
+    KEY_BYTES,
+    SLACK,
+    TAG,
+    FrameSeal,
+)
 from snail_common.net.tls import client_context, make_certs, server_context
 
 CHUNK = 1 << 20  # the garbler's table frames are 1 MiB
@@ -63,6 +72,25 @@ def tls_rates(rounds: int = 20) -> tuple[float, float]:
         t2 = time.thread_time()
         encrypt, decrypt = min(encrypt, t1 - t0), min(decrypt, t2 - t1)
     return CHUNK / max(encrypt, 1e-9), CHUNK / max(decrypt, 1e-9)
+
+
+def seal_rates(rounds: int = 20) -> tuple[float, float]:
+    """(seal, open) bytes per CPU second of this thread on the table link's ``aead`` path
+    (snail_common/net/seal.py: AES-256-GCM over whole 1 MiB frames), the best of
+    ``rounds`` frames each way, buffers reused as the daemons reuse theirs."""
+    key = os.urandom(KEY_BYTES)
+    garbler = FrameSeal(key, GARBLER_TO_EVALUATOR, EVALUATOR_TO_GARBLER)
+    evaluator = FrameSeal(key, EVALUATOR_TO_GARBLER, GARBLER_TO_EVALUATOR)
+    frame, plain = os.urandom(CHUNK), bytearray(CHUNK + TAG + SLACK)
+    seal = open_ = float("inf")
+    for _ in range(rounds):
+        t0 = time.thread_time()
+        sealed = garbler.seal([b"", frame], written=True)[1]
+        t1 = time.thread_time()
+        evaluator.open(sealed, memoryview(plain))
+        t2 = time.thread_time()
+        seal, open_ = min(seal, t1 - t0), min(open_, t2 - t1)
+    return CHUNK / max(seal, 1e-9), CHUNK / max(open_, 1e-9)
 
 
 def socket_rate(total: int = 64 << 20) -> float:

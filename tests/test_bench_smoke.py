@@ -119,8 +119,9 @@ def test_bench_service():
 
 def test_bench_audits():
     out = _run("snail_bench.cli", "audits", "--points", "4", "--repeat", "2", "--batches",
-               "1", "--audits", "1")
+               "1", "--audits", "1", "--table-link", "digest")
     assert out.returncode == 0, out.stderr
+    assert _json(out, "table_link") == "digest"  # the daemons took the flag, and said so
     report = _json(out, "audits")["loc/nx-sil-n4"]
     assert report["garbler"]["attest_share"]["median"] > 0
     assert report["evaluator"]["digest_gb_per_s"]["median"] > 0

@@ -22,6 +22,7 @@ def test_service_bench_reports_measured_runs():
     # half-gates asked for: auto may pick three-halves once it has measured the link
     out = _bench("--points", "4", "--repeat", "2", "--scheme", "halfgates", "--json")
     assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["table_link"] == "aead"  # the daemons' default
     row = json.loads(out.stdout)["service"]["nx-sil-n4"]  # the client solves, by default
     assert row["scheme"] == "halfgates"
     iface = registry.interface(Spec(solver="client", points=4, arith="fixed").registry_id)
@@ -40,6 +41,12 @@ def test_service_bench_reports_measured_runs():
     assert row["timing"]["garbler_garble_s"] > 0 and row["timing"]["evaluator_evaluate_s"] > 0
     assert all(mb > 10 for mb in row["peak_rss_mb"].values())
     assert set(row["peak_rss_mb"]) == {"garbler", "evaluator"}
+
+
+def test_service_bench_sets_only_the_daemons_it_starts():
+    out = _bench("--points", "4", "--garbler", "127.0.0.1:1", "--evaluator", "127.0.0.1:2",
+                 "--tls-dir", ".", "--table-link", "tls")
+    assert out.returncode == 2 and "--table-link sets the embedded daemons" in out.stderr
 
 
 def test_service_bench_half_remote_addresses_is_a_usage_error():
