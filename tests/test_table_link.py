@@ -9,6 +9,7 @@ import asyncio
 import contextlib
 import json
 import os
+import re
 import socket
 import time
 from collections.abc import Iterator
@@ -41,10 +42,16 @@ IDLE_S = 4  # the daemons' --idle-timeout (the garbler's pool closes its idle li
 SMALL = "ops/fadd-x1"
 LARGE = "ops/fmul-x256"  # ~7 MB of tables: a byte well inside the stream can be changed
 FLIP_IN = 3 << 19  # 1.5 MiB into the next run's stream: inside the second frame's tables
-# what the client hears when a byte of the tables changed on the server link, per mode
-CHANGED = {"tls": "garbler's table stream",
-           "aead": "garbler's table stream: frame .* fails its seal: changed on the wire",
-           "digest": "not the ones the garbler signed .* the garbler or the server link"}
+# When a byte of the tables changed on the server link, the evaluator fails the session
+# and closes the link; both servers then tell the client, and the client reports whichever
+# word comes first: the evaluator's, or the garbler's loss of the evaluator (both name the
+# server link). What the evaluator found is in its session line, per mode: the outcome
+# and reason, None where TLS refuses the record before the evaluator reads it.
+SERVER_LINK = "garbler's table stream|garbler .* lost the evaluator"
+FOUND = {"tls": None,
+         "aead": ("link", "frame .* fails its seal: changed on the wire"),
+         "digest": ("digest", "not the ones the garbler signed .* the garbler or the server "
+                              "link")}
 
 
 # ---- the seal -------------------------------------------------------------------------
@@ -199,12 +206,22 @@ def test_each_mode_gives_the_cleartext_answer_and_says_which_it_is(pair):
 
 def test_a_byte_changed_on_the_server_link_fails_the_run_naming_it(pair):
     bits = random_bits(LARGE, 1)
+    before = len(pair.lines("evaluator", "session"))
     pair.proxy.flip_in = FLIP_IN
     try:
-        with pair.client() as client, pytest.raises(ServiceError, match=CHANGED[pair.mode]):
+        with pair.client() as client, pytest.raises(ServiceError, match=SERVER_LINK):
             client.run(LARGE, bits)
     finally:
         pair.proxy.flip_in = None
+    if FOUND[pair.mode] is not None:
+        outcome, reason = FOUND[pair.mode]
+        deadline = time.monotonic() + 60  # hang guard: the line follows the client's error
+        while not (failed := [s for s in pair.lines("evaluator", "session")[before:]
+                              if s["outcome"] != "ok"]):
+            assert time.monotonic() < deadline, "no failed session line"
+            time.sleep(0.05)
+        assert [s["outcome"] for s in failed] == [outcome]
+        assert re.search(reason, failed[0]["reason"]), failed[0]["reason"]
     with pair.client() as client:  # the next run is served on a new link
         np.testing.assert_array_equal(client.run(LARGE, bits), cleartext(LARGE, bits))
 
