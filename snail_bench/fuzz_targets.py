@@ -36,10 +36,13 @@ _SCRATCH = Path(os.environ.get("SNAIL_FUZZ_DIR") or
 def frames(data: bytes) -> None:
     """A byte stream into the frame reader, cut where its first byte says: what a peer
     on a TLS connection can send."""
-    reader = FrameReader(max_frame=1 << 16)
-    cut = 1 + (data[0] if data else 0)
-    for start in range(1, len(data), cut):
-        chunk = data[start:start + cut]
+    _read_in_cuts(FrameReader(max_frame=1 << 16), data[1:], 1 + (data[0] if data else 0))
+
+
+def _read_in_cuts(reader: FrameReader, wire: bytes | bytearray, cut: int) -> None:
+    """``wire`` into ``reader`` ``cut`` bytes at a time, as a transport delivers it."""
+    for start in range(0, len(wire), cut):
+        chunk = wire[start:start + cut]
         view = reader.buffer()
         size = min(len(view), len(chunk))
         view[:size] = chunk[:size]
@@ -68,13 +71,7 @@ def sealed_frames(data: bytes) -> None:
         wire[flip] ^= 1
     reader = FrameReader(max_frame=1 << 16,
                          seal=FrameSeal(_FUZZ_KEY, EVALUATOR_TO_GARBLER, GARBLER_TO_EVALUATOR))
-    cut = 1 + data[0]
-    for start in range(0, len(wire), cut):
-        chunk = wire[start:start + cut]
-        view = reader.buffer()
-        size = min(len(view), len(chunk))
-        view[:size] = chunk[:size]
-        reader.filled(size)
+    _read_in_cuts(reader, wire, 1 + data[0])
 
 
 def message(data: bytes) -> None:
