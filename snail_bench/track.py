@@ -160,8 +160,12 @@ def track_run(sequence: Sequence, options: Options, feed_fps: float | None = Non
             records.append(out)
         wall, cpu = time.perf_counter() - began, time.process_time() - cpu
         engine = _engine(tracker.backend)
+        ot = _ot(tracker, len(records)) if owner else None
     totals = summary(records, wall, cpu, tracker)
-    return _report(sequence, options, feed, records, outs, totals, engine, owner)
+    report = _report(sequence, options, feed, records, outs, totals, engine, owner)
+    if owner:
+        report.update(ot=ot, relay=False)
+    return report
 
 
 def _report(sequence: Sequence, options: Options, feed: Feed, records: list[dict],
@@ -239,6 +243,19 @@ class _tracker:
 
     def __exit__(self, *exc: object) -> None:
         self._ctx.__exit__(*exc)
+
+
+def _ot(tracker: Tracker, frames: int) -> dict | None:
+    """The map-owner setting's OT figures (FORMATS.md, round 5): runs whose session's OT
+    was done before the run began, runs that took a pad correction, and the device's
+    time a frame on the map owner's account (selection and corrections)."""
+    secure = getattr(tracker.backend, "secure", None)
+    pads = getattr(getattr(secure, "async_runner", None), "pads", None)
+    link = tracker.frames.link
+    if pads is None or link is None:
+        return None
+    return {"precomputed": pads.precomputed, "used": pads.used,
+            "per_frame_s": round((link.select_s + pads.seconds) / max(frames, 1), 6)}
 
 
 def _engine(backend: object) -> str | None:

@@ -4,8 +4,8 @@ Garbling does not depend on inputs, so a caller that knows invocations of a circ
 coming (``expect``: a padded frame makes at least ``--min-invocations``) lets the pool
 keep up to ``ahead`` sessions prepared, the next one garbled while the current one is
 evaluated. A prepared session is used once or cancelled, never reused; one prepared for
-other shared input bits (``FixedInputs``), another map-owner frame, or whose link broke
-is cancelled when found and a fresh one is garbled.
+other shared input bits (``FixedInputs``) or whose link broke is cancelled when found and
+a fresh one is garbled.
 
 A runner localizing a sequence (a second frame of a circuit was declared) keeps its
 depth garbled between frames too, for the circuit of its last frame only (a frame of
@@ -119,21 +119,21 @@ class AheadPool:
             self.ceiling += 1
             self._calm = 0
 
-    def take(self, circuit_id: str, bits: np.ndarray, frame: bytes | None) -> Prepared | None:
+    def take(self, circuit_id: str, bits: np.ndarray) -> Prepared | None:
         """A prepared session of ``circuit_id`` the servers still hold and that fits
-        ``bits`` (its fixed inputs' labels were sent for these values) and, for a map-owner
-        circuit, the map owner's ``frame``, if any: one holding this run's shared labels
-        first, else one kept warm. Sessions no run can use any more go (cancelled);
-        those of another frame still under way stay for it (frames in flight)."""
+        ``bits`` (its fixed inputs' labels were sent for these values): one holding this
+        run's shared labels first, else one kept warm. Sessions no run can use any more
+        go (cancelled); those of another frame still under way stay for it (frames in
+        flight). A map-owner session serves any frame: the map owner's share is bound to
+        the frame only when it runs (snail_mapd/pads.py)."""
         queue = self._prepared.get(circuit_id)
         if not queue:
             return None
-        for session in [x for x in queue if not x.usable
-                        or (x.owner_bits and x.frame != frame)]:
+        for session in [x for x in queue if not x.usable]:
             queue.remove(session)
             if session.refused:
                 self.refused()
-            self._cancel(session)  # expired, evicted, an earlier map-owner frame's
+            self._cancel(session)  # expired or evicted
         fits = [x for x in queue if x.fixed is None or x.fixed.matches(bits)]
         if not fits:
             return None
@@ -158,15 +158,14 @@ class AheadPool:
             queue.remove(other)
             self._cancel(other)
 
-    async def in_flight(self, circuit_id: str, bits: np.ndarray,
-                        frame: bytes | None) -> Prepared | None:
+    async def in_flight(self, circuit_id: str, bits: np.ndarray) -> Prepared | None:
         """Wait for a session of ``circuit_id`` already being prepared, rather than ask
         the garbler for yet another one (it would garble it behind those)."""
         tasks = [t for t in self._filling if t.get_name() == circuit_id]
         if not tasks:
             return None
         await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-        return self.take(circuit_id, bits, frame)
+        return self.take(circuit_id, bits)
 
     def fill(self, circuit_id: str) -> None:
         """Prepare sessions in the background up to min(ahead, expected invocations), or

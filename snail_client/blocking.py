@@ -115,8 +115,9 @@ class SecureRunner:
         """Decoded output bits; traffic and time of the run in ``self.last``."""
         return self._complete(self._runner.run(circuit_id, input_bits))
 
-    def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
-        return self._complete(self._runner.invoke(circuit_id, input_bits))
+    def invoke(self, circuit_id: str, input_bits: np.ndarray,
+               frame: bytes | None = None) -> Invocation:
+        return self._complete(self._runner.invoke(circuit_id, input_bits, frame))
 
     def health(self, role: str) -> dict[str, Any]:
         return self._complete(self._runner.health(role))

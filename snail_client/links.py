@@ -51,6 +51,17 @@ class Inbox:
             await self._ready.wait()
         return self._items.popleft()
 
+    async def answered(self) -> None:
+        """Return once the server has said something of this session (without taking it:
+        ``get`` still returns it)."""
+        while not self._items:
+            self._ready.clear()
+            await self._ready.wait()
+
+    @property
+    def empty(self) -> bool:
+        return not self._items
+
     @property
     def failed(self) -> bool:
         """The server already gave up this session (an error or a broken link)."""

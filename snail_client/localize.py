@@ -100,9 +100,10 @@ class GarbledBackend(CircuitBackend):
         self.secure = runner
         self.on_invocation: Callable[[], object] | None = None  # e.g. a progress bar
         self.schemes: Counter[str] = Counter()  # sessions per garbling scheme so far
+        self.frame: bytes | None = None  # the map owner's frame these runs are for
 
     def _secure_run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
-        run = self.secure.invoke(circuit_id, bits)
+        run = self.secure.invoke(circuit_id, bits, self.frame)
         self.schemes[run.scheme] += 1
         out = run.outputs
         if self.on_invocation is not None:

@@ -105,6 +105,7 @@ def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
     published = link.published or link.open()
     handle, masked = link.select(frame.map_ids)
     backend.secure.use_frame(handle, link.address)
+    backend.frame = handle  # this frame's runs (frames in flight: each names its own)
     try:
         result = localize_shared(frame, published, masked, options, backend, start, runs)
     except IntegrityFailure as exc:  # the frame's audits go with its failure

@@ -69,11 +69,12 @@ from snail_common.net.linkrates import (
     deeper,
     pick_scheme,
 )
-from snail_common.pnp.spec import owner_bits
+from snail_common.pnp.spec import masked_wires, owner_bits
 
 from .ahead import AheadPool
 from .audit import Audits, named_signer
 from .links import DEFAULT_LINK_TIMEOUT, Link, ServiceError, labels_and_stats
+from .owner_pads import OwnerRefused, PadCorrections
 from .replicas import ReplicaSet
 from .retry import blame, retryable
 from .sessions import (
@@ -135,12 +136,17 @@ class AsyncSecureRunner:
         self.ahead = AheadPool(ahead, functools.partial(self._prepare, ahead=True),
                                self._cancel, self._adopt)
         self.frame: tuple[bytes, str] | None = None  # see use_frame
+        self.pads: PadCorrections | None = None  # the map owner's per-run word
 
     def use_frame(self, handle: bytes, map_owner: str) -> None:
         """Runs of map-owner circuits from now on take the map owner's inputs of this
-        frame (the handle its selection gave; its address as the garbler reaches it).
-        Sessions prepared for an earlier frame are dropped when found."""
+        frame unless they name their own (the handle its selection gave; its address as
+        the garbler and this device reach it). Sessions garbled ahead serve any frame:
+        each takes its frame's pad correction when it runs (owner_pads.py)."""
         self.frame = (handle, map_owner)
+        if self.pads is None or self.pads.address != map_owner:
+            self.pads = PadCorrections(map_owner, self.ctx, self.connect_timeout,
+                                       self.timeout)
 
     async def _open(self, role: str, addr: tuple[str, int]) -> Link:
         """A link to the ``role`` replica at ``addr``; its certificate must carry the name
@@ -172,8 +178,10 @@ class AsyncSecureRunner:
         """Decoded output bits of one secure run; details in ``self.last``."""
         return (await self.invoke(circuit_id, input_bits)).outputs
 
-    async def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
-        """One secure run of ``circuit_id`` on ``input_bits`` (bool, one per input wire).
+    async def invoke(self, circuit_id: str, input_bits: np.ndarray,
+                     frame: bytes | None = None) -> Invocation:
+        """One secure run of ``circuit_id`` on ``input_bits`` (bool, one per input wire);
+        a map-owner circuit's for the map owner's ``frame`` (default: ``use_frame``'s).
 
         A run refused as busy runs again, and one refused as draining or whose replica
         was lost does where another replica answers (retry.py): with a fresh session,
@@ -185,7 +193,7 @@ class AsyncSecureRunner:
         pause, attempt = BACKOFF_FIRST, 0
         while True:
             try:
-                inv = await self._invoke_once(circuit_id, input_bits, attempt == 0)
+                inv = await self._invoke_once(circuit_id, input_bits, attempt == 0, frame)
             except ServiceError as exc:
                 if exc.code in ROOMLESS:
                     self.ahead.refused()
@@ -209,12 +217,11 @@ class AsyncSecureRunner:
             return inv
 
     async def _invoke_once(self, circuit_id: str, input_bits: np.ndarray,
-                           first: bool = True) -> Invocation:
+                           first: bool = True, frame: bytes | None = None) -> Invocation:
         t0 = time.perf_counter()
         bits = np.asarray(input_bits)
-        frame = self.frame[0] if self.frame else None
-        session = (self.ahead.take(circuit_id, bits, frame)
-                   or await self.ahead.in_flight(circuit_id, bits, frame)
+        session = (self.ahead.take(circuit_id, bits)
+                   or await self.ahead.in_flight(circuit_id, bits)
                    or await self._prepare(circuit_id, fixed=False))
         self.audits.admit(session, self._cancel, self.replicas)  # none caught cheating
         iface, sid = session.iface, session.sid
@@ -224,8 +231,10 @@ class AsyncSecureRunner:
                              f"for {circuit_id}, got {bits.dtype} {bits.shape}")
         if first:  # one use per invocation, however many attempts it takes
             self.ahead.used(circuit_id)
-        labels = active_input_labels(session.seed, session.delta, bits)
         try:
+            if session.owner_bits:
+                bits = await self._corrected(session, bits, frame or self.frame[0])
+            labels = active_input_labels(session.seed, session.delta, bits)
             sent_e = sum(write_labels(session.evaluator.conn, "input_labels", sid,
                                       labels[a:b], a, len(session.todo))
                          for a, b in runs(session.todo))
@@ -236,6 +245,9 @@ class AsyncSecureRunner:
             self._cancel(session)
             raise ServiceError(f"{circuit_id}: no result within {self.timeout:g} s") \
                 from None
+        except OwnerRefused as exc:  # the map owner's word: neither server is to blame
+            self._cancel(session)
+            raise ServiceError(f"{circuit_id}: {exc}", exc.code, retry=False) from None
         except (ServiceError, ConnectionClosed) as exc:
             self._cancel(session)
             failed = ServiceError(f"{circuit_id}: {exc}", getattr(exc, "code", None),
@@ -270,6 +282,24 @@ class AsyncSecureRunner:
         for k, v in traffic.items():
             self.totals[k] = self.totals.get(k, 0) + v
         return self.last
+
+    async def _corrected(self, session: Prepared, bits: np.ndarray, frame: bytes
+                         ) -> np.ndarray:
+        """``bits`` with the map owner's pad correction of this session for ``frame``
+        folded into its ``world_masked`` share (owner_pads.py), asked once the garbler
+        has answered for the session: after its OT with the map owner, so the map owner
+        holds its bits; a garbler that refused it (a map owner its operator did not
+        allow, say) is heard first, by its own error."""
+        pads = self.pads
+        pads.precomputed += not session.to_g.empty  # garbled, its OT done, before the run
+        await asyncio.wait_for(session.to_g.answered(), self.timeout)
+        if session.to_g.failed:
+            await self._collect(session)  # raises the garbler's error
+        wires = masked_wires(session.iface)
+        correction = await pads.correction(frame, session.sid, wires.stop - wires.start)
+        out = bits.copy()
+        out[wires] ^= correction  # OwnerRefused: the map owner's word
+        return out
 
     def _measured(self, report: dict[str, float], session: Prepared, table_bytes: int,
                   wall: float, waited: float) -> None:
@@ -342,11 +372,11 @@ class AsyncSecureRunner:
         if n_owner and self.frame is None:
             raise ServiceError(f"{circuit_id} takes the map owner's input: no frame was "
                                f"selected from a map owner")
-        owner = {"frame": self.frame[0], "map_owner": self.frame[1]} if n_owner else {}
+        owner = {"map_owner": self.frame[1]} if n_owner else {}
         if fixed is not None and fixed.mask.shape != (iface.n_inputs,):
             raise ServiceError(f"{circuit_id}: the fixed inputs cover {fixed.mask.size} "
                                f"wires, the circuit has {iface.n_inputs}")
-        todo = label_slots_to_send(iface.n_inputs, n_owner, fixed)
+        todo = label_slots_to_send(iface, fixed)
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
         scheme = self.session_scheme(circuit_id)
@@ -370,7 +400,7 @@ class AsyncSecureRunner:
             evaluator.cancel(sid)
             raise
         return Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
-                        sent_g, sent_e, owner.get("frame"), n_owner, fixed, todo, scheme, key)
+                        sent_g, sent_e, n_owner, fixed, todo, scheme, key)
 
     @staticmethod
     def _adopt(session: Prepared, fixed: FixedInputs) -> bool:
@@ -381,7 +411,7 @@ class AsyncSecureRunner:
         if session.fixed is not None or not session.usable \
                 or fixed.mask.shape != (n_inputs,):
             return False
-        todo = label_slots_to_send(n_inputs, session.owner_bits, fixed)
+        todo = label_slots_to_send(session.iface, fixed)
         try:
             session.sent_e += send_fixed_labels(session.evaluator, session.sid, session.seed,
                                           session.delta, fixed, todo)
@@ -425,7 +455,8 @@ class AsyncSecureRunner:
 
     async def close(self) -> None:
         await self.ahead.close()
-        await asyncio.gather(*(r.close() for r in self.replicas.values()),
+        pads = [self.pads.close()] if self.pads is not None else []
+        await asyncio.gather(*(r.close() for r in self.replicas.values()), *pads,
                              return_exceptions=True)
 
     async def __aenter__(self) -> AsyncSecureRunner:

@@ -15,6 +15,7 @@ from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net.chunks import runs, write_labels
 from snail_common.net.conn import parse_addr
 from snail_common.net.errors import BUSY, EVICTED
+from snail_common.pnp.spec import masked_wires, owner_bits
 
 from .links import Inbox, Link
 
@@ -54,7 +55,6 @@ class Prepared:
     to_e: Inbox
     sent_g: int
     sent_e: int
-    frame: bytes | None = None  # the map owner's frame handle, for its circuits
     owner_bits: int = 0  # input wires (the last ones) whose labels the map owner gives
     fixed: FixedInputs | None = None  # input bits whose labels were sent when prepared
     # the client's label slots (two constants, one per input wire but the map owner's)
@@ -111,13 +111,18 @@ def parse_address(value: Address, name: str) -> tuple[str, int]:
         raise ValueError(f"{name}: {exc}") from None
 
 
-def label_slots_to_send(n_inputs: int, n_owner: int, fixed: FixedInputs | None) -> np.ndarray:
-    """The client's label slots (two constants, then its input wires) still to send when
-    a session is invoked: all of them, or those the ``fixed`` labels do not cover."""
-    todo = np.ones(FIRST_INPUT + n_inputs - n_owner, bool)
+def label_slots_to_send(iface: Interface, fixed: FixedInputs | None) -> np.ndarray:
+    """The client's label slots (two constants, then its input wires but the map owner's)
+    still to send when a session is invoked: all of them, or those the ``fixed`` labels
+    do not cover. A map-owner circuit's ``world_masked`` share is always among them: it
+    takes the session's own pad correction, known only when the session runs."""
+    n_inputs = iface.n_inputs - owner_bits(iface)
+    todo = np.ones(FIRST_INPUT + n_inputs, bool)
     if fixed is not None:
         todo[:FIRST_INPUT] = False  # the constants' labels never change either
-        todo[FIRST_INPUT:] = ~fixed.mask[:n_inputs - n_owner]
+        todo[FIRST_INPUT:] = ~fixed.mask[:n_inputs]
+        masked = masked_wires(iface)
+        todo[FIRST_INPUT + masked.start:FIRST_INPUT + masked.stop] = True
     return todo
 
 

@@ -212,18 +212,18 @@ class ThreadedRunner:
             self.loop.call_soon_threadsafe(gate.close)
 
     def invoke(self, circuit_id: str, input_bits: np.ndarray,
-               gate: Gate | None = None) -> Invocation:
-        run = self._submit(self._invoke(circuit_id, input_bits, gate))
+               gate: Gate | None = None, frame: bytes | None = None) -> Invocation:
+        run = self._submit(self._invoke(circuit_id, input_bits, gate, frame))
         self.invocations_seen.append(run)
         return run
 
-    async def _invoke(self, circuit_id: str, bits: np.ndarray, gate: Gate | None
-                      ) -> Invocation:
+    async def _invoke(self, circuit_id: str, bits: np.ndarray, gate: Gate | None,
+                      frame: bytes | None) -> Invocation:
         if gate is not None:
             await gate.enter()
         if self.pacer is not None:
             self.pacer.circuit = circuit_id
-        return await self.secure.invoke(circuit_id, bits)
+        return await self.secure.invoke(circuit_id, bits, frame)
 
     def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
         async def announce() -> None:
@@ -266,8 +266,9 @@ class GatedRunner:
     def __init__(self, threaded: ThreadedRunner, gate: Gate | None) -> None:
         self.threaded, self.gate = threaded, gate
 
-    def invoke(self, circuit_id: str, input_bits: np.ndarray) -> Invocation:
-        return self.threaded.invoke(circuit_id, input_bits, self.gate)
+    def invoke(self, circuit_id: str, input_bits: np.ndarray,
+               frame: bytes | None = None) -> Invocation:
+        return self.threaded.invoke(circuit_id, input_bits, self.gate, frame)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.threaded, name)

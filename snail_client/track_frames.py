@@ -78,10 +78,10 @@ def _in_front(problem: Problem, pose: PoseVectors | None) -> PoseVectors | None:
 class MapFrames:
     """The map-owner setting: each frame's points selected from the map owner by OT
     (mapowner.py), its runs on the map-owner circuit. The device holds no 3D point: its
-    checks are the cost's, at the last pose a run evaluated. One frame at a time: the
-    runner names a single map-owner frame to all its sessions (``use_frame``)."""
+    checks are the cost's, at the last pose a run evaluated. Frames overlap as in the
+    offload setting: each run names its own frame to the map owner (owner_pads.py)."""
 
-    max_in_flight = 1
+    max_in_flight = MAX_IN_FLIGHT
 
     def __init__(self, options: Options, link: MapOwnerLink | None,
                  known: tuple[PublishedMap, np.ndarray] | None = None) -> None:

@@ -75,7 +75,7 @@ class _FrameBackend(GarbledBackend):
         self._bytes: dict[str, int] = {}
 
     def _secure_run(self, circuit_id: str, bits: np.ndarray) -> np.ndarray:
-        run = self.secure.invoke(circuit_id, bits)
+        run = self.secure.invoke(circuit_id, bits, self.frame)
         self.schemes[run.scheme] += 1
         for link, count in run.traffic.items():
             self._bytes[link] = self._bytes.get(link, 0) + count

@@ -2,12 +2,17 @@
 IKNP OT whose receiver is the map owner (snail-mapd).
 
 For a circuit whose last input group is the map owner's (``pnp.spec.owner_bits``), the
-client's ``garble_request`` names the frame handle the map owner issued and the map
-owner's address. The garbler derives those wires' zero-labels L0 from the client's seed,
-as for every input, and offers (L0, L0 ^ D) per wire; the map owner's choices are its pad
-bits, so it gets one label per wire and never D, and forwards them to the evaluator. The
-garbler learns nothing of the bits (IKNP hides the choices). Links are kept per map-owner
-address with their OT state: the base OTs (~0.1 s) run once per link, not per session.
+client's ``garble_request`` names the map owner's address. The garbler derives those
+wires' zero-labels L0 from the client's seed, as for every input, and offers (L0, L0 ^ D)
+per wire as the session is garbled, ahead of its run; the map owner's choices are fresh
+random bits r of that session, so it gets one label per wire and never D, and forwards
+them to the evaluator. No frame is named here: when the device runs the session for a
+frame, the map owner tells the device the frame's pad bits XOR r (the derandomization of
+a random OT, as Beaver's), which the device folds into its own share of the points; the
+circuit XORs the two shares as before. So this OT is off the run's path, and a session
+garbled ahead serves whichever frame comes. The garbler learns nothing of r (IKNP hides
+the choices). Links are kept per map-owner address with their OT state: the base OTs
+(~0.1 s) run once per link, not per session.
 
 The client names the address, so the garbler dials only map owners its operator allowed
 (``--map-owner``, names resolved: snail_common.net.replicas): otherwise any client could
@@ -70,14 +75,13 @@ class OwnerInputs:
         allow (``forbidden``), the map owner's refusal or a lost map owner."""
         count = owner_bits(circuit)
         if not count:
-            if "frame" in req or "map_owner" in req:
-                raise ProtocolError(BAD_REQUEST, f"fields 'frame'/'map_owner': circuit "
+            if "map_owner" in req:
+                raise ProtocolError(BAD_REQUEST, f"field 'map_owner': circuit "
                                                  f"{req['circuit']} takes no map-owner input")
             return {}
-        if "frame" not in req or "map_owner" not in req:
+        if "map_owner" not in req:
             raise ProtocolError(BAD_REQUEST, f"circuit {req['circuit']} takes the map "
-                                             f"owner's input: 'frame' and 'map_owner' "
-                                             f"are required")
+                                             f"owner's input: 'map_owner' is required")
         if not self.allowed:
             raise ProtocolError(FORBIDDEN, f"field 'map_owner': this garbler dials no map "
                                            f"owner, none is allowed; {NOT_ALLOWED}")
@@ -106,8 +110,8 @@ class OwnerInputs:
                    evaluator: tuple[str, str | None]) -> None:
         sid, (address, instance) = req["sid"], evaluator
         extra = {"evaluator_id": instance} if instance is not None else {}
-        conn.write(messages.make("map_invocation", sid=sid, frame=req["frame"], count=count,
-                                 evaluator=address, **extra))
+        conn.write(messages.make("map_invocation", sid=sid, count=count, evaluator=address,
+                                 **extra))
         while True:
             msg, _ = await conn.recv(timeout)
             kind = msg["t"]

@@ -8,15 +8,17 @@ Two kinds of peers connect (snail_common.net.messages has the catalogue):
   (``ot_base_a``/``ot_base_b``, the device is the IKNP receiver) each ``ot_ext_u`` is one
   frame's oblivious selection (ot/selection.py): the device gets xyz ^ P for its secret
   indices in ``sel_table`` chunks with a fresh frame handle; the map owner keeps the pads P
-  of that frame (at most ``max_frames`` frames, the oldest forgotten first).
-- the garbler (role ``garbler``), per invocation of a frame: ``map_invocation`` {sid,
-  frame, count, evaluator}. The map owner inputs P: it is the receiver of a chosen-message
-  IKNP OT whose sender is the garbler (base OTs once per connection, the map owner as the
-  base-OT sender), its choices the bits of P; it gets one label per wire, never the global
-  offset, and forwards the labels to the evaluator (``owner_labels`` by sid), then answers
-  the garbler ``done``. The garbler names the evaluator replica; the map owner dials it
-  only if its own operator's ``--evaluator`` names reach it (snail_common.net.replicas),
-  else the invocation is ``forbidden``.
+  of that frame (at most ``max_frames`` frames, the oldest forgotten first). Per run,
+  ``pad_correction_request`` {frame, sid} is answered with P ^ r, r being the random
+  choices of that session's OT (pads.py): the device's share becomes xyz ^ r.
+- the garbler (role ``garbler``), per session as it garbles it (ahead of its run):
+  ``map_invocation`` {sid, count, evaluator}. The map owner inputs fresh random bits r:
+  it is the receiver of a chosen-message IKNP OT whose sender is the garbler (base OTs
+  once per connection, the map owner as the base-OT sender); it gets one label per wire,
+  never the global offset, and forwards the labels to the evaluator (``owner_labels`` by
+  sid), then answers the garbler ``done``. The garbler names the evaluator replica; the
+  map owner dials it only if its own operator's ``--evaluator`` names reach it
+  (snail_common.net.replicas), else the invocation is ``forbidden``.
 
 It never receives a 2D point, a map id, a pose, a seed or the offset: no message carries
 one to it.
@@ -33,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from snail_common.loc.owner import PublishedMap
+from snail_common.loc.owner import POINT_BYTES, PublishedMap
 from snail_common.net import messages
 from snail_common.net.chunks import write_labels
 from snail_common.net.conn import Connection, connect, format_addr
@@ -54,7 +56,11 @@ from snail_common.ot import ExtReceiver, ExtSender
 from snail_common.ot.carry import chunks, ot_part, pad_bits
 from snail_common.ot.selection import SelectSender, index_bits
 
+from .pads import SessionPads
+
 MAX_FRAMES = 4096  # selections whose pads are kept (a frame's invocations need them)
+PAD_BITS = POINT_BYTES * 8  # a point's pad: three float32 words
+MAX_PAD_BITS = 1024 * PAD_BITS  # the largest circuit's (n <= 1,024: docs/map-owner.md)
 NO_CIRCUIT = "map_owner"  # the circuit field of a session log line
 
 
@@ -73,6 +79,7 @@ class MapOwnerDaemon(Daemon):
         self.frames: OrderedDict[bytes, np.ndarray] = OrderedDict()  # handle -> pads
         self.max_frames = max_frames
         self.evaluators: dict[tuple[str, int], Connection] = {}
+        self.sessions = SessionPads()  # each session's random OT choices, until its run
         self._dialing: dict[tuple[str, int], asyncio.Lock] = {}
 
     # ---- devices (role client): published map and oblivious selection ------------------
@@ -95,6 +102,8 @@ class MapOwnerDaemon(Daemon):
                 if ot is None:
                     raise ProtocolError(UNEXPECTED, "a selection before the base OTs")
                 await self._select(conn, ot, msg, size)
+            elif kind == "pad_correction_request":
+                self._correct(conn, msg)
             elif await self.ends_link(conn, kind, "a client may not send {} to the map "
                                                   "owner"):
                 return
@@ -150,18 +159,25 @@ class MapOwnerDaemon(Daemon):
                                                   "owner"):
                 return
 
-    def _pad_bits(self, msg: dict[str, Any]) -> np.ndarray:
-        """The choice bits of an invocation (its frame's pads); ProtocolError naming the
-        field that does not fit."""
-        pads = self.frames.get(msg["frame"])
-        if pads is None:
-            raise ProtocolError(BAD_REQUEST, "field 'frame': no selection of this map owner "
-                                             "has that handle (unknown or forgotten)")
-        bits = pad_bits(pads)
-        if msg["count"] != len(bits):
-            raise ProtocolError(BAD_REQUEST, f"field 'count': the frame has {len(bits)} "
-                                             f"pad bits, not {msg['count']}")
-        return bits
+    def _correct(self, conn: Connection, msg: dict[str, Any]) -> None:
+        """Answer one run's ``pad_correction_request``: its frame's pad bits XOR its
+        session's random choices (an ``error`` {sid} naming the field that does not fit)."""
+        sid = msg["sid"]
+        try:
+            pads = self.frames.get(msg["frame"])
+            if pads is None:
+                raise ProtocolError(BAD_REQUEST, "field 'frame': no selection of this map "
+                                                 "owner has that handle (unknown or "
+                                                 "forgotten)")
+            bits, chosen = pad_bits(pads), self.sessions.take(sid)
+            if len(bits) != len(chosen):
+                raise ProtocolError(BAD_REQUEST, f"field 'frame': the frame has {len(bits)} "
+                                                 f"pad bits, the session's circuit "
+                                                 f"{len(chosen)}")
+            conn.write(messages.make("pad_correction", sid=sid, correction=np.packbits(
+                bits ^ chosen, bitorder="little").tobytes()))
+        except ProtocolError as exc:
+            conn.post(messages.error(exc.code, exc.message, sid))
 
     async def _base_ots(self, conn: Connection, ot: list[ExtReceiver]) -> ExtReceiver:
         """The link's OT session: base OTs (the map owner as their sender) the first time."""
@@ -175,14 +191,20 @@ class MapOwnerDaemon(Daemon):
 
     async def _invocation(self, conn: Connection, ot: list[ExtReceiver],
                           msg: dict[str, Any], size: int) -> None:
-        """Take the labels of this frame's pad bits by OT and forward them."""
+        """Take the labels of fresh random bits by OT, forward them, keep the bits for
+        the session's run (pads.py)."""
         sid, t0 = msg["sid"], time.monotonic()
         record = {"sid": sid, "circuit": NO_CIRCUIT, "n_and": 0, "bytes_in": size,
                   "bytes_out": 0, "seconds": 0.0, "outcome": OK}
         slot = self.admit()
         started = False  # once OT messages flow, a failure leaves this link out of step
         try:
-            bits = self._pad_bits(msg)
+            count = msg["count"]
+            if not 0 < count <= MAX_PAD_BITS or count % PAD_BITS:
+                raise ProtocolError(BAD_REQUEST, f"field 'count': a multiple of {PAD_BITS} "
+                                                 f"up to {MAX_PAD_BITS}, got {count}")
+            bits = np.unpackbits(np.frombuffer(secrets.token_bytes(count // 8), np.uint8),
+                                 bitorder="little")
             evaluator = await self._locate(msg)  # before the OT: a refusal costs nothing
             started = True
             receiver = await self._base_ots(conn, ot)
@@ -194,6 +216,7 @@ class MapOwnerDaemon(Daemon):
                 raise ProtocolError(UNEXPECTED, "an OT answer for another session")
             labels = await self.work(receiver.receive, ot_part(answer))
             record["bytes_out"] += await self._forward(evaluator, sid, labels)
+            self.sessions.add(sid, bits)
             record["bytes_out"] += conn.write(messages.make("done", sid=sid))
         except ProtocolError as exc:
             record.update(outcome=exc.code, reason=exc.message)

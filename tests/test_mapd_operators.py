@@ -118,7 +118,7 @@ def _send(sock, kind: str, **fields) -> dict:
 
 
 def test_messages_out_of_place_are_named(daemon, tls_dir):
-    invocation = {"sid": SID, "frame": bytes(16), "count": 96, "evaluator": "127.0.0.1:1"}
+    invocation = {"sid": SID, "count": 96, "evaluator": "127.0.0.1:1"}
     with contextlib.closing(raw(daemon.address, tls_dir)) as sock:  # a device
         hello(sock)
         reply = _send(sock, "map_invocation", **invocation)
@@ -129,11 +129,15 @@ def test_messages_out_of_place_are_named(daemon, tls_dir):
         assert reply["code"] == errors.UNEXPECTED and "base OTs" in reply["message"]
     with contextlib.closing(raw(daemon.address, tls_dir, "garbler")) as sock:
         hello(sock, "garbler")
-        reply = _send(sock, "map_invocation", **invocation)  # a frame never issued
-        assert reply["code"] == errors.BAD_REQUEST and "'frame'" in reply["message"]
+        reply = _send(sock, "map_invocation", **invocation)  # no evaluator allowed
+        assert reply["code"] == errors.FORBIDDEN and "'evaluator'" in reply["message"]
         assert reply["sid"] == SID
         reply = _send(sock, "ot_ext_y", sid=SID, start=0, y=bytes(32))  # link lives on
         assert reply["code"] == errors.UNEXPECTED and "ot_ext_y" in reply["message"]
+    with contextlib.closing(raw(daemon.address, tls_dir, "garbler")) as sock:
+        hello(sock, "garbler")  # the device's request, from the garbler
+        reply = _send(sock, "pad_correction_request", frame=bytes(16), sid=SID)
+        assert reply["code"] == errors.UNEXPECTED and "pad_correction" in reply["message"]
     with contextlib.closing(raw(daemon.address, tls_dir, "evaluator")) as sock:
         reply = hello(sock, "evaluator")
         assert reply["code"] == errors.FORBIDDEN
@@ -143,7 +147,6 @@ def test_messages_out_of_place_are_named(daemon, tls_dir):
 def test_a_selection_of_ragged_size_and_a_wrong_count_are_named(daemon, tls_dir):
     with MapOwnerLink(daemon.address, tls_dir) as link:
         link.open()
-        handle, _ = link.select(np.array([10, 11, 12, 13]))
         conn = link._conn
         conn.write(messages.make("ot_ext_u", start=0, m=7, u=bytes(128)))  # 5 per query
         reply = link._loop.run_until_complete(conn.recv(10))[0]
@@ -151,10 +154,25 @@ def test_a_selection_of_ragged_size_and_a_wrong_count_are_named(daemon, tls_dir)
         assert "'m'" in reply["message"]
     with contextlib.closing(raw(daemon.address, tls_dir, "garbler")) as sock:
         hello(sock, "garbler")
-        reply = _send(sock, "map_invocation", sid=SID, frame=handle, count=95,
-                      evaluator="127.0.0.1:1")
+        reply = _send(sock, "map_invocation", sid=SID, count=95, evaluator="127.0.0.1:1")
         assert reply["code"] == errors.BAD_REQUEST and "'count'" in reply["message"]
-        assert "384" in reply["message"]  # 4 points, 96 pad bits each
+        assert "multiple of 96" in reply["message"]  # a point's pad is 96 bits
+    assert_serves(daemon, tls_dir)
+
+
+def test_a_correction_names_the_unknown_frame_or_session(daemon, tls_dir):
+    """A run's pad correction needs a frame this map owner selected and a session whose
+    OT it took: either missing is named, and the link serves on."""
+    with MapOwnerLink(daemon.address, tls_dir) as link:
+        link.open()
+        handle, _ = link.select(np.array([10, 11, 12, 13]))
+        conn = link._conn
+        for frame, field in ((bytes(16), "'frame'"), (handle, "'sid'")):
+            conn.write(messages.make("pad_correction_request", frame=frame, sid=SID))
+            reply = link._loop.run_until_complete(conn.recv(10))[0]
+            assert reply["t"] == "error" and reply["code"] == errors.BAD_REQUEST
+            assert field in reply["message"] and reply["sid"] == SID
+        assert link.select(np.array([10, 11, 12, 13]))[0] != handle  # served on
     assert_serves(daemon, tls_dir)
 
 
@@ -172,12 +190,9 @@ def test_the_map_owner_sends_labels_only_to_evaluators_its_operator_allowed(
         for running, words in ((daemon, "dials no evaluator"),
                                (allowed, f"127.0.0.1:{target.port} is not an evaluator "
                                          f"this server may dial")):
-            with MapOwnerLink(running.address, tls_dir) as link:
-                link.open()
-                handle, _ = link.select(np.array([10, 11, 12, 13]))
             with contextlib.closing(raw(running.address, tls_dir, "garbler")) as sock:
                 hello(sock, "garbler")
-                reply = _send(sock, "map_invocation", sid=SID, frame=handle, count=384,
+                reply = _send(sock, "map_invocation", sid=SID, count=384,
                               evaluator=f"127.0.0.1:{target.port}")
                 assert reply["code"] == errors.FORBIDDEN, reply
                 assert words in reply["message"] and "--evaluator" in reply["message"]

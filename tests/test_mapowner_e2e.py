@@ -204,11 +204,11 @@ def test_no_frame_carries_what_its_receiver_must_not_see(servers, tmp_path, monk
     to_garbler = received(tmp_path, "garbler")
     to_evaluator = received(root, "evaluator")[earlier:]
     assert {m["t"] for m in to_mapd} <= {"hello", "capabilities", "map_info_request",
-                                         "ot_base_a", "ot_ext_u",
+                                         "ot_base_a", "ot_ext_u", "pad_correction_request",
                                          "map_invocation", "ot_base_b", "ot_ext_y", "bye"}
     # the map owner: no 2D point, map id, pose, seed or offset
     requests = [m for m in to_garbler if m["t"] == "garble_request"]
-    assert requests and all("frame" in m for m in requests)
+    assert requests and all("map_owner" in m and "frame" not in m for m in requests)
     secrets_ = {m[k] for m in requests for k in ("seed", "delta")}
     image = np.asarray(frame.points2d)
     needles = {row.astype("<f8").tobytes() for row in image}
@@ -250,7 +250,7 @@ def test_a_frame_the_map_owner_does_not_know_is_refused_by_name(servers, tmp_pat
         with pytest.raises(ProblemError, match=r"map_ids\[0\]"):
             link.select(np.array([int(published.ids.max()) + 1, *frame.map_ids[1:]]))
         runner.use_frame(bytes(16), mapd.address)  # never issued
-        with pytest.raises(ServiceError, match="map owner reported: field 'frame'"):
+        with pytest.raises(ServiceError, match=r"map owner at \S+: field 'frame'"):
             owner.localize_shared(frame, published, np.zeros((6, 3), np.uint32),
                                   OPTIONS, GarbledBackend(runner))
 

@@ -24,12 +24,13 @@ def samples():
         messages.make("ot_ext_y", sid=SID, start=0, y=bytes(256)),
         messages.make("sel_table", frame=FRAME, start=0, key=bytes(16), offset=0, total=24,
                       table=bytes(24)),
-        messages.make("map_invocation", sid=SID, frame=FRAME, count=96,
-                      evaluator="localhost:4000"),
+        messages.make("map_invocation", sid=SID, count=96, evaluator="localhost:4000"),
+        messages.make("pad_correction_request", frame=FRAME, sid=SID),
+        messages.make("pad_correction", sid=SID, correction=bytes(12)),
         messages.make("owner_labels", sid=SID, start=0, total=2, labels=bytes(32)),
         messages.make("garble_request", sid=SID, circuit="loc/x", hash="ab" * 32,
                       seed=bytes(16), delta=b"\x01" + bytes(15), key=bytes(16),
-                      frame=FRAME),
+                      map_owner="localhost:4001"),
         messages.make("hello", role="mapowner", software="t", max_frame=1),
     ]
 
@@ -53,10 +54,10 @@ def test_every_map_owner_message_round_trips():
                    "total": 1, "table": b"x"}, "frame"),
     ("sel_table", {"frame": FRAME, "start": 0, "key": bytes(16), "offset": 0, "total": 1,
                    "table": bytes(messages.DATA_CHUNK + 1)}, "table"),
-    ("map_invocation", {"sid": SID, "frame": FRAME, "count": 96,
-                        "evaluator": "x" * 301}, "evaluator"),
-    ("map_invocation", {"sid": SID, "frame": FRAME, "count": 1.5,
-                        "evaluator": "h:1"}, "count"),
+    ("map_invocation", {"sid": SID, "count": 96, "evaluator": "x" * 301}, "evaluator"),
+    ("map_invocation", {"sid": SID, "count": 1.5, "evaluator": "h:1"}, "count"),
+    ("pad_correction_request", {"frame": bytes(15), "sid": SID}, "frame"),
+    ("pad_correction", {"sid": SID, "correction": "bits"}, "correction"),
     ("owner_labels", {"sid": SID, "start": 0, "total": 1, "labels": bytes(15)}, "labels"),
 ])
 def test_bad_fields_are_named(kind, fields, name):
@@ -67,12 +68,16 @@ def test_bad_fields_are_named(kind, fields, name):
 
 def test_unknown_fields_and_missing_fields_are_refused():
     with pytest.raises(errors.ProtocolError) as caught:
-        messages.validate({"t": "map_invocation", "sid": SID, "frame": FRAME, "count": 1,
+        messages.validate({"t": "map_invocation", "sid": SID, "count": 1,
                            "evaluator": "h:1", "pose": [0.0]})
     assert caught.value.code == errors.UNKNOWN_FIELD
     with pytest.raises(errors.ProtocolError) as caught:
         messages.validate({"t": "owner_labels", "sid": SID, "start": 0, "total": 1})
     assert caught.value.code == errors.MISSING_FIELD
+    with pytest.raises(errors.ProtocolError) as caught:  # the frame is named per run now
+        messages.validate({"t": "map_invocation", "sid": SID, "frame": FRAME, "count": 96,
+                           "evaluator": "h:1"})
+    assert caught.value.code == errors.UNKNOWN_FIELD and "'frame'" in caught.value.message
 
 
 def test_make_certs_issues_a_map_owner_server_certificate(tmp_path):

@@ -38,15 +38,19 @@ client -> mapowner           ``map_info_request``; answered by ``map_info`` chun
                              sorted public id list and the normalizing transform);
                              ``ot_base_a`` once (answered ``ot_base_b``), then per frame
                              ``ot_ext_u`` (the index bits of its selection), answered by
-                             ``sel_table`` chunks carrying the frame handle
-garbler -> mapowner          per invocation ``map_invocation`` {sid, frame, count,
-                             evaluator}; the map owner answers ``ot_base_a`` (once per
-                             connection, the garbler replies ``ot_base_b``), ``ot_ext_u``
-                             {sid} with its pad bits as choices; the garbler sends
-                             ``ot_ext_y`` {sid}; the map owner answers ``done`` or ``error``
+                             ``sel_table`` chunks carrying the frame handle; per run
+                             ``pad_correction_request`` {frame, sid}, answered by
+                             ``pad_correction`` {sid, correction}: the frame's pad bits
+                             XOR the session's random ones, given once per session
+garbler -> mapowner          per session, as it is garbled (ahead of its run)
+                             ``map_invocation`` {sid, count, evaluator}; the map owner
+                             answers ``ot_base_a`` (once per connection, the garbler
+                             replies ``ot_base_b``), ``ot_ext_u`` {sid} with fresh random
+                             bits as choices; the garbler sends ``ot_ext_y`` {sid}; the map
+                             owner answers ``done`` or ``error``
 mapowner -> evaluator        ``owner_labels`` chunks: the labels of the map owner's wires
                              (the last ``count`` input wires of the circuit)
-``garble_request`` carries the ``frame`` handle and the ``map_owner`` address when the
+``garble_request`` carries the ``map_owner`` address when the
 circuit takes map-owner inputs, and names the evaluator replica the client talks to
 (``evaluator``: its address as the client reached it, ``evaluator_id``: the ``instance``
 of its ``capabilities``); the garbler streams to that replica if its operator's
@@ -194,7 +198,7 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
                       {"scheme": scheme, "ahead": flag, "signer": public_key}),
     "garble_request": ({"sid": sid, "circuit": circuit, "hash": content_hash, "seed": key16,
                         "delta": key16, "key": key16},
-                       {"scheme": scheme, "ahead": flag, "frame": key16,
+                       {"scheme": scheme, "ahead": flag,
                         "map_owner": text(MAX_ADDRESS),
                         "evaluator": text(MAX_ADDRESS), "evaluator_id": text(64)}),
     "input_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
@@ -224,8 +228,10 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "ot_ext_y": ({"start": count, "y": ot_body}, {"sid": sid}),
     "sel_table": ({"frame": key16, "start": count, "key": key16, "offset": count,
                    "total": count, "table": chunk}, {}),
-    "map_invocation": ({"sid": sid, "frame": key16, "count": count,
-                        "evaluator": text(MAX_ADDRESS)}, {"evaluator_id": text(64)}),
+    "map_invocation": ({"sid": sid, "count": count, "evaluator": text(MAX_ADDRESS)},
+                       {"evaluator_id": text(64)}),
+    "pad_correction_request": ({"frame": key16, "sid": sid}, {}),
+    "pad_correction": ({"sid": sid, "correction": blob(max_size=MAX_OT_BYTES)}, {}),
     "owner_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
 }
 

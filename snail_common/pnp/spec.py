@@ -187,6 +187,18 @@ def owner_bits(circuit: Circuit | Interface) -> int:
     return last.size if last is not None and last.name == OWNER_PAD else 0
 
 
+def masked_wires(circuit: Circuit | Interface) -> slice:
+    """The input wires (counted from the first input) of the device's ``world_masked``
+    share in a map-owner circuit: where the device folds in the map owner's correction
+    of a session's pad (snail_mapd/pads.py); an empty slice for another circuit."""
+    start = 0
+    for group in circuit.inputs if owner_bits(circuit) else ():
+        if group.name == MASKED:
+            return slice(start, start + group.size)
+        start += group.size
+    return slice(0, 0)
+
+
 def run_mirror(spec: Spec, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The float32 mirror of the circuit: same inputs, bit-identical outputs."""
     be = MirrorBackend()
