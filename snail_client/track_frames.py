@@ -44,6 +44,7 @@ class Problems:
     a frame's answer is checked in the clear (its reprojection RMS)."""
 
     max_in_flight = MAX_IN_FLIGHT
+    warmup = 0  # any pose is checked here: no frame needs a second run for its verdict
 
     def __init__(self, options: Options) -> None:
         self.options = options
@@ -79,9 +80,13 @@ class MapFrames:
     """The map-owner setting: each frame's points selected from the map owner by OT
     (mapowner.py), its runs on the map-owner circuit. The device holds no 3D point: its
     checks are the cost's, at the last pose a run evaluated. Frames overlap as in the
-    offload setting: each run names its own frame to the map owner (owner_pads.py)."""
+    offload setting: each run names its own frame to the map owner (owner_pads.py).
+    The first two tracked frames get two runs (``Schedule`` warm-up, fixed in advance):
+    predicted before any motion is known, their one run's fit is the prediction's, not
+    the answer's, and judged them lost though their answers were right."""
 
     max_in_flight = MAX_IN_FLIGHT
+    warmup = 2
 
     def __init__(self, options: Options, link: MapOwnerLink | None,
                  known: tuple[PublishedMap, np.ndarray] | None = None) -> None:

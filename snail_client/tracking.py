@@ -93,7 +93,7 @@ class Tracker:
         do = options.mode == "do"
         self.schedule = Schedule(1 if do else options.runs_per_frame,
                                  1 if do else options.min_invocations,
-                                 options.on_lost, options.motion_model)
+                                 options.on_lost, options.motion_model, frames.warmup)
         self.in_flight = 1
         self.padding_frames = 0  # frames that made padding runs only (nothing to run)
         self.paced_padding_runs = 0  # --rate: runs in slots no frame took

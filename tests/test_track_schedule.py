@@ -57,6 +57,21 @@ def test_the_first_frame_is_padded_and_later_ones_get_exactly_k_runs():
     assert schedule.state == TRACKING and not schedule.waits_for_answers
 
 
+def test_the_warm_up_frames_get_two_runs_whatever_the_answers():
+    """Fixed in advance: frames 1 .. W get two runs (one was asked for) trusted or not."""
+    schedule = Schedule(runs_per_frame=1, min_invocations=20, warmup=2)
+    schedule.observe(schedule.plan(0), _trusted(A, runs=20))
+    runs = []
+    for index in range(1, 6):
+        plan = schedule.plan(index)
+        runs.append(plan.runs)
+        schedule.observe(plan, Outcome(index != 1, A, plan.runs, CIRCUIT))  # 1 is lost
+    assert runs == [2, 2, 1, 1, 1]
+    more = Schedule(runs_per_frame=3, warmup=2)  # K above two stays K
+    more.observe(more.plan(0), _trusted(A, runs=20))
+    assert more.plan(1).runs == 3
+
+
 def test_a_padded_first_frame_that_needed_more_runs_is_revealed():
     schedule = Schedule(runs_per_frame=1, min_invocations=20)
     seen = schedule.observe(schedule.plan(0), _trusted(A, runs=21))

@@ -5,6 +5,9 @@ tested without servers.
 States: ``initializing`` (no pose yet), ``tracking``, ``lost``.
 
 ``runs_per_frame=0`` pads every frame instead, as before the fixed schedule existed.
+``warmup=W``: frames 1 .. W get at least two runs, fixed in advance like the rest (the
+map-owner setting's device sees a fit only where a run evaluated it: with one run, the
+prediction's, and before any motion is known that is not the answer's).
 
 - initializing: the frame gets today's padded localization (at least ``min_invocations``
   runs) from its own initial pose. Only the first frame is: that is fixed in advance.
@@ -111,7 +114,7 @@ class Schedule:
     """The state machine; see the module docstring."""
 
     def __init__(self, runs_per_frame: int = 1, min_invocations: int = 20,
-                 on_lost: str = "wait", motion_model: str = "auto") -> None:
+                 on_lost: str = "wait", motion_model: str = "auto", warmup: int = 0) -> None:
         if runs_per_frame < 0:
             raise ValueError(f"--runs-per-frame: must not be negative, got {runs_per_frame}")
         if on_lost not in ON_LOST:
@@ -120,6 +123,7 @@ class Schedule:
             raise ValueError(f"--motion-model: expected one of {MOTION_MODELS}, "
                              f"got {motion_model!r}")
         self.runs_per_frame, self.min_invocations = runs_per_frame, min_invocations
+        self.warmup = warmup
         self.on_lost, self.motion_model = on_lost, motion_model
         self.state = INITIALIZING
         self.circuit: str | None = None  # the schedule's circuit: the first frame's
@@ -151,7 +155,8 @@ class Schedule:
             return Plan(index, True, self.min_invocations, start, prediction=by)
         if state.state == LOST and self.on_lost == "reveal":
             return Plan(index, True, self.min_invocations, start, True, by)
-        return Plan(index, False, self.runs_per_frame, start, prediction=by)
+        runs = max(self.runs_per_frame, 2) if index <= self.warmup else self.runs_per_frame
+        return Plan(index, False, runs, start, prediction=by)
 
     def predict(self, index: int, lag: int = 1) -> PoseVectors | None:
         """The start of frame ``index``: the last trusted pose (or, when lost, the lost
