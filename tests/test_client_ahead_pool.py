@@ -49,8 +49,8 @@ class _Servers:
         for _ in range(invocations):
             await asyncio.sleep(0)
             bits = fixed.bits | np.array([True, False, False, False])  # a pose bit
-            session = (self.pool.take(circuit, bits, None)
-                       or await self.pool.in_flight(circuit, bits, None))
+            session = (self.pool.take(circuit, bits)
+                       or await self.pool.in_flight(circuit, bits))
             assert session is not None and FixedInputs.same(session.fixed, fixed)
             used.append(session)
             self.pool.used(circuit)
@@ -132,8 +132,8 @@ def test_a_reservation_the_servers_refused_shrinks_the_pool_until_it_has_been_qu
         bits = fixed.bits | np.array([True, False, False, False])
         depths = []
         for _ in range(2 * REGROW_AFTER + 2):
-            session = (servers.pool.take(CIRCUIT, bits, None)
-                       or await servers.pool.in_flight(CIRCUIT, bits, None))
+            session = (servers.pool.take(CIRCUIT, bits)
+                       or await servers.pool.in_flight(CIRCUIT, bits))
             assert session is not None and not session.refused
             servers.pool.used(CIRCUIT)
             servers.pool.fill(CIRCUIT)

@@ -146,7 +146,8 @@ class _Recorder:
     def fixed(self, circuit_id: str) -> FixedInputs | None:
         return self.declared.get(circuit_id)
 
-    def invoke(self, circuit_id: str, bits: np.ndarray) -> Invocation:
+    def invoke(self, circuit_id: str, bits: np.ndarray, frame: bytes | None = None
+               ) -> Invocation:
         self.runs.append(bits)
         return Invocation(np.zeros(self.n_outputs, bool), {}, 0.0)
 
