@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import os
 import re
 import socket
@@ -33,8 +34,8 @@ from snail_common.circuit import evaluate_bits, registry
 from snail_common.loc.problem import load_problem
 from snail_common.net import errors, tls
 from snail_common.net.conn import connect, new_event_loop, parse_addr
-from snail_common.net.datalink import PREAMBLE
-from snail_common.net.frames import FrameReader, decode, encode
+from snail_common.net.datalink import AEAD, PREAMBLE, TOKEN_BYTES, DataPort
+from snail_common.net.frames import BodyPool, FrameReader, decode, encode
 from snail_common.net.seal import (
     EVALUATOR_TO_GARBLER,
     GARBLER_TO_EVALUATOR,
@@ -365,6 +366,71 @@ def test_a_connection_that_sends_nothing_is_closed_after_the_handshake_timeout(p
         assert time.monotonic() - t0 >= 3 * 0.9  # never before --handshake-timeout
     assert any("nothing sent within 3 s" in e["reason"]
                for e in pair.lines("evaluator", "connection_rejected"))
+
+
+def test_a_stranger_that_goes_silent_is_dropped_at_its_first_wrong_byte(tmp_path):
+    """Not held for --handshake-timeout (300 s here) waiting for an opening its first
+    bytes already rule out: wrong from the first byte, or from the ninth."""
+    tls_dir = make_certs(tmp_path / "tls")
+    evaluator = start_daemon("evaluator", [
+        "--tls-dir", str(tls_dir), "--log-level", "info", "--handshake-timeout", "300",
+        "--table-link", "aead"], tmp_path / "evaluator.log",
+        env={"SNAIL_CACHE_DIR": os.environ["SNAIL_CACHE_DIR"]})
+    openings = (b"GET / HTTP/1.1\r\n", PREAMBLE[:8] + b"X")
+    try:
+        for opening in openings:
+            with socket.create_connection(parse_addr(evaluator.address)) as sock:
+                sock.sendall(opening)  # and then nothing more
+                assert closed_by_peer(sock) == b""  # a minute's guard, not a timing
+        deadline = time.monotonic() + 60  # hang guard: the lines follow the closes
+        while len(refused := [e for e in map(json.loads, evaluator.log.read_text()
+                                              .splitlines())
+                              if e.get("event") == "data_link_refused"]) < len(openings):
+            assert time.monotonic() < deadline, "no data_link_refused line"
+            time.sleep(0.05)
+    finally:
+        evaluator.stop()
+    assert [e["reason"] for e in refused] == \
+        ["its first bytes are not the data link's preamble"] * len(openings)
+
+
+def test_an_opening_in_pieces_is_admitted_and_a_wrong_byte_refused_at_once():
+    """The gate (datalink.py) byte by byte: every prefix of the preamble waits for more,
+    the first byte off it is refused there, whatever came before."""
+
+    class Transport:
+        def __init__(self) -> None:
+            self.aborted = False
+
+        def get_extra_info(self, name: str) -> object:
+            return ("127.0.0.1", 1) if name == "peername" else None
+
+        def abort(self) -> None:
+            self.aborted = True
+
+    async def feed(data: bytes) -> tuple[list[int], list[bytes]]:
+        """The bytes after which the gate refused, and the openings it passed on."""
+        refusals: list[int] = []
+        port = DataPort(AEAD, 300, logging.getLogger("test"), lambda conn: None,
+                        lambda: refusals.append(len(fed)), 10, BodyPool(0))
+        admitted: list[bytes] = []
+        port.admit = lambda transport, opening: admitted.append(opening)
+        gate, transport, fed = port.gate(), Transport(), bytearray()
+        gate.connection_made(transport)
+        for byte in data:
+            if transport.aborted:
+                break
+            gate.get_buffer(1)[0] = byte
+            fed.append(byte)
+            gate.buffer_updated(1)
+        gate.connection_lost(None)
+        return refusals, admitted
+
+    token = os.urandom(TOKEN_BYTES)
+    assert asyncio.run(feed(PREAMBLE + token)) == ([], [PREAMBLE + token])
+    for at in (0, 5, len(PREAMBLE) - 1):
+        wrong = PREAMBLE[:at] + bytes([PREAMBLE[at] ^ 1]) + PREAMBLE[at + 1:] + token
+        assert asyncio.run(feed(wrong)) == ([at + 1], [])
 
 
 @pytest.mark.parametrize("evaluator_mode, garbler_mode", [("aead", "tls"), ("tls", "digest")])
