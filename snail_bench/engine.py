@@ -132,7 +132,8 @@ def _engine_report(wide_layers: int, deep_layers: int, schemes: tuple[str, ...],
               "aes_blocks_per_s": round(_aes_rate()),
               "tls_encrypt_bytes_per_s": round(encrypt),
               "tls_decrypt_bytes_per_s": round(decrypt),
-              "seal_bytes_per_s": round(seal), "open_bytes_per_s": round(open_),
+              "table_seal_bytes_per_s": round(seal),
+              "table_open_bytes_per_s": round(open_),
               "socket_bytes_per_s": round(socket_rate())}
     if "reason" in serving:
         report["native_unavailable"] = serving["reason"]

@@ -27,6 +27,14 @@ Nothing the client sends depends on the draw: the audit runs after the run, on t
 alone, and the run's timings that size garble-ahead and pick the scheme exclude it. A
 party caught is refused for the rest of the runner's life (``admit``); in a fleet the run
 is tried again on another replica.
+
+A run the evaluator failed because the garbler's tables reached it changed (``link``: a
+frame of the table link fails its seal; ``digest``: the tables are not the ones the
+garbler signed) is an integrity failure too, blaming ``server-link`` (``named``, around
+every run of the blocking runners, blocking.py and threaded.py): the evaluator cannot
+tell a garbler that sends wrong bytes from a link that changes them, and the client,
+which got no signed stream of the run, cannot either. No wrong answer came of it, so
+neither server is refused: the next session opens a new link.
 """
 
 from __future__ import annotations
@@ -34,16 +42,17 @@ from __future__ import annotations
 import asyncio
 import math
 import secrets
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from snail_common.gc import IntegrityError, decode_output_labels
 from snail_common.gc.attest import Statement, outputs_digest
 from snail_common.gc.stream import scheme_id
+from snail_common.net.errors import DIGEST, LINK
 
 from . import evidence
 from .links import Link, ServiceError
@@ -59,11 +68,15 @@ from .sessions import Prepared
 DEFAULT_AUDIT_RATE = 1 / 8
 _DRAW = 1 << 53
 INTEGRITY = "integrity"
+SERVER_LINK = "server-link"
+# the evaluator's codes for tables that reached it changed: the garbler's or the link's doing
+TABLES_CHANGED = frozenset({LINK, DIGEST})
+T = TypeVar("T")
 
 
 class IntegrityFailure(ServiceError):
-    """A run failed the integrity checks: ``party`` (garbler, evaluator or
-    evaluator-or-ot) is to blame, ``run`` its index among the runner's runs, ``evidence``
+    """A run failed the integrity checks: ``party`` (garbler, evaluator, evaluator-or-ot
+    or server-link) is to blame, ``run`` its index among the runner's runs, ``evidence``
     the file written (if any)."""
 
     def __init__(self, party: str, run: int, detail: str, evidence: Path | None = None,
@@ -142,6 +155,26 @@ class Audits:
         recomputed = await loop.run_in_executor(None, _regarble, screened)
         self.audit_s = loop.time() - t0
         return self._settle(screened, recomputed, replicas)
+
+    async def named(self, invocation: Awaitable[T]) -> T:
+        """The result of ``invocation`` (a secure run); where the evaluator failed it for
+        tables that reached it changed, whichever server passed its word on, an
+        IntegrityFailure blaming the server link, counted as a run checked and failed."""
+        try:
+            return await invocation
+        except IntegrityFailure:
+            raise
+        except ServiceError as exc:
+            if exc.code not in TABLES_CHANGED:
+                raise
+            run = self.runs
+            self.runs += 1
+            self.failed += 1
+            raise IntegrityFailure(
+                SERVER_LINK, run, f"the garbler's tables were changed on the server link, "
+                f"or sent so by the garbler: the evaluator cannot tell a garbler that sends "
+                f"wrong bytes from a link that changes them ({exc})",
+                link=exc.link) from None
 
     def draw(self) -> bool:
         """Whether to audit the next run: True with probability ``rate`` (OS CSPRNG)."""

@@ -113,11 +113,14 @@ class SecureRunner:
 
     def run(self, circuit_id: str, input_bits: np.ndarray) -> np.ndarray:
         """Decoded output bits; traffic and time of the run in ``self.last``."""
-        return self._complete(self._runner.run(circuit_id, input_bits))
+        return self.invoke(circuit_id, input_bits).outputs
 
     def invoke(self, circuit_id: str, input_bits: np.ndarray,
                frame: bytes | None = None) -> Invocation:
-        return self._complete(self._runner.invoke(circuit_id, input_bits, frame))
+        """One secure run; IntegrityFailure where a check failed, the evaluator's for the
+        garbler's tables included (``Audits.named``)."""
+        return self._complete(self.audits.named(self._runner.invoke(circuit_id, input_bits,
+                                                                    frame)))
 
     def health(self, role: str) -> dict[str, Any]:
         return self._complete(self._runner.health(role))

@@ -223,7 +223,7 @@ class ThreadedRunner:
             await gate.enter()
         if self.pacer is not None:
             self.pacer.circuit = circuit_id
-        return await self.secure.invoke(circuit_id, bits, frame)
+        return await self.secure.audits.named(self.secure.invoke(circuit_id, bits, frame))
 
     def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
         async def announce() -> None:

@@ -63,8 +63,10 @@ class TableLink:
     async def verdict(self, sid: bytes, timeout: float, ended_here: bool = False) -> None:
         """The evaluator's verdict on ``sid`` within ``timeout``: ``done`` returns;
         ``error`` raises RemoteError once the connection is in step again (the garbler's
-        own ``error`` answers it, unless ``ended_here``: the garbler's was sent first).
-        Anything else breaks the link (ProtocolError or ConnectionClosed)."""
+        own ``error`` answers it, unless ``ended_here``: the garbler's was sent first);
+        an ``error`` of no session ends the link with the evaluator's word (RemoteError:
+        its code, ``link`` or ``digest`` for tables that reached it changed, goes on to the
+        client). Anything else breaks the link (ProtocolError or ConnectionClosed)."""
         try:
             msg, _ = await self.conn.recv(timeout)
         except BaseException:
@@ -79,6 +81,8 @@ class TableLink:
             self.state = State.IDLE
             raise RemoteError(msg["code"], msg["message"], sid)
         self.state = State.BROKEN
+        if msg["t"] == "error" and msg.get("sid") is None:  # it closes the link next
+            raise RemoteError(msg["code"], msg["message"])
         if msg["t"] == "bye":
             raise ConnectionClosed("the evaluator is shutting down")
         raise ProtocolError(UNEXPECTED, f"the evaluator sent {msg['t']} mid-session")
@@ -140,8 +144,13 @@ class TableLinks:
         link.state = State.SENT if not ended_here else link.state
         try:
             await link.verdict(sid, self.verdict_timeout, ended_here)
-        except RemoteError:
-            pass  # in step: the evaluator ended the session (its client was told)
+        except RemoteError as exc:
+            if link.state is State.BROKEN:  # the evaluator ended the link itself
+                link.conn.abort()
+                event(self.log, "stream_link_closed", logging.INFO, sid=sid,
+                      reason=f"the evaluator ended the link: {exc}")
+                return
+            # else in step: the evaluator ended the session (its client was told)
         except (ProtocolError, ConnectionClosed, TimeoutError, asyncio.CancelledError) as exc:
             link.conn.abort()
             if not isinstance(exc, asyncio.CancelledError):

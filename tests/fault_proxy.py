@@ -3,8 +3,9 @@
 TLS passes through it untouched (it only moves bytes), so the daemons and the client see
 a real network fault: a peer that stops reading (``stall``), a partition that keeps both
 sockets open and silent (``partition``), a link cut with a reset (``cut``), a slow link
-(``rate``), or one that changes a byte on the way (``flip_in``). It runs its own event
-loop in a thread, so tests can drive blocking clients while it misbehaves.
+(``rate``), or one that changes a byte on the way (``flip_in``); with ``hold_closes`` the
+proxy's client does not hear its target close the connection until ``release``. It runs
+its own event loop in a thread, so tests can drive blocking clients while it misbehaves.
 """
 
 from __future__ import annotations
@@ -39,11 +40,15 @@ class FaultProxy:
     # this many bytes towards the target from now (over all connections), one bit of the
     # next byte is flipped, once
     flip_in: int | None = None
+    # while set, a connection the target closed (or reset) stays open towards the proxy's
+    # client, silent, as if the target still held it; ``release`` passes the closes on
+    hold_closes: bool = False
     port: int = 0
     bytes_forwarded: int = 0
     _loop: asyncio.AbstractEventLoop = field(default_factory=asyncio.new_event_loop)
     _writers: list[asyncio.StreamWriter] = field(default_factory=list)
     _thread: threading.Thread | None = None
+    _held: int = 0  # connections whose close is held now
 
     @property
     def address(self) -> str:
@@ -68,6 +73,7 @@ class FaultProxy:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self.hold_closes = False
         self._loop.call_soon_threadsafe(self._close_all, False)
         self._loop.call_soon_threadsafe(self._loop.stop)
         if self._thread:
@@ -82,6 +88,15 @@ class FaultProxy:
         done = threading.Event()
         self._loop.call_soon_threadsafe(lambda: (self._close_all(True), done.set()))
         done.wait(5)
+
+    def release(self) -> None:
+        """Pass on the closes held since ``hold_closes`` was set; return once they are."""
+        async def passed_on() -> None:
+            self.hold_closes = False
+            while self._held:
+                await asyncio.sleep(0.01)
+
+        asyncio.run_coroutine_threadsafe(passed_on(), self._loop).result(60)
 
     def _close_all(self, reset: bool) -> None:
         for writer in self._writers:
@@ -122,6 +137,11 @@ class FaultProxy:
             except OSError:  # a reset (a killed peer): pass it on as a close, which also
                 data = b""  # ends the other direction's read
             if not data:
+                if not pipe.upstream and self.hold_closes:
+                    self._held += 1
+                    while self.hold_closes:
+                        await asyncio.sleep(0.01)
+                    self._held -= 1
                 pipe.writer.close()
                 return
             while self.mode == "partition":

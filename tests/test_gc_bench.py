@@ -17,9 +17,11 @@ def test_engine_report_shape_and_sanity():
                            "step_overhead_us", "scheme", "bytes_per_and"}
     assert all(report[k] > 0 for k in RATES)
     assert report["step_overhead_us"] > 0
-    # the stream's floor: TLS both ways and the socket (figures: a rate is the benchmark's
-    # to report, never a test's to judge, docs/development.md)
+    # the stream's floor: TLS both ways, the table link's seal both ways and the socket
+    # (figures: a rate is the benchmark's to report, never a test's to judge,
+    # docs/development.md)
     assert all(report[k] > 0 for k in ("tls_encrypt_bytes_per_s", "tls_decrypt_bytes_per_s",
+                                       "table_seal_bytes_per_s", "table_open_bytes_per_s",
                                        "socket_bytes_per_s"))
     assert report["wide_and"] == 2 * (1 << 15)
     assert report["deep_steps"] >= 2 * 20

@@ -1,13 +1,15 @@
 """The table link (--table-link tls | aead | digest, snail_common/net/datalink.py): each
 mode gives the cleartext circuit's answer and says which it is; a byte changed on the
-server link fails the run naming that link; a stranger or a replayed token on the data
-port is dropped and logged; servers set to different modes refuse, naming the flag."""
+server link fails the run naming that link (in aead and digest, a localization's record
+blames party server-link); a stranger or a replayed token on the data port is dropped and
+logged; servers set to different modes refuse, naming the flag."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import json
+import logging
 import os
 import re
 import socket
@@ -21,15 +23,19 @@ import pytest
 from fault_proxy import FaultProxy
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from shared_paths import EXAMPLES
 
+from snail_client.audit import IntegrityFailure
 from snail_client.blocking import SecureRunner
 from snail_client.embedded import Daemon, make_certs, start_daemon
 from snail_client.links import ServiceError
+from snail_client.localize import GarbledBackend, Options, failure_record, localize
 from snail_common.circuit import evaluate_bits, registry
+from snail_common.loc.problem import load_problem
 from snail_common.net import errors, tls
 from snail_common.net.conn import connect, new_event_loop, parse_addr
-from snail_common.net.datalink import PREAMBLE
-from snail_common.net.frames import FrameReader, decode, encode
+from snail_common.net.datalink import AEAD, PREAMBLE, TOKEN_BYTES, DataPort
+from snail_common.net.frames import BodyPool, FrameReader, decode, encode
 from snail_common.net.seal import (
     EVALUATOR_TO_GARBLER,
     GARBLER_TO_EVALUATOR,
@@ -44,10 +50,12 @@ LARGE = "ops/fmul-x256"  # ~7 MB of tables: a byte well inside the stream can be
 FLIP_IN = 3 << 19  # 1.5 MiB into the next run's stream: inside the second frame's tables
 # When a byte of the tables changed on the server link, the evaluator fails the session
 # and closes the link; both servers then tell the client, and the client reports whichever
-# word comes first: the evaluator's, or the garbler's loss of the evaluator (both name the
-# server link). What the evaluator found is in its session line, per mode: the outcome
-# and reason, None where TLS refuses the record before the evaluator reads it.
-SERVER_LINK = "garbler's table stream|garbler .* lost the evaluator"
+# word comes first: the evaluator's (in aead and digest an integrity failure blaming the
+# server link), or the garbler's loss of the evaluator (both name the server link). What
+# the evaluator found is in its session line, per mode: the outcome and reason, None where
+# TLS refuses the record before the evaluator reads it.
+SERVER_LINK = "garbler's table stream|garbler .* lost the evaluator|changed on the server link"
+PROBLEM = EXAMPLES / "synthetic_n6.json"  # 5.7 MB of tables a run: FLIP_IN is inside them
 FOUND = {"tls": None,
          "aead": ("link", "frame .* fails its seal: changed on the wire"),
          "digest": ("digest", "not the ones the garbler signed .* the garbler or the server "
@@ -139,9 +147,9 @@ class Pair:
     garbler: Daemon
     proxy: FaultProxy
 
-    def client(self) -> SecureRunner:
+    def client(self, **kw: object) -> SecureRunner:
         return SecureRunner(self.garbler.address, self.evaluator.address, self.tls_dir,
-                            timeout=120)
+                            timeout=120, **kw)
 
     def lines(self, role: str, kind: str) -> list[dict]:
         log = getattr(self, role).log
@@ -224,6 +232,40 @@ def test_a_byte_changed_on_the_server_link_fails_the_run_naming_it(pair):
         assert re.search(reason, failed[0]["reason"]), failed[0]["reason"]
     with pair.client() as client:  # the next run is served on a new link
         np.testing.assert_array_equal(client.run(LARGE, bits), cleartext(LARGE, bits))
+
+
+@pytest.mark.parametrize("mode", ["aead", "digest"])  # tls: TLS refuses the record first
+def test_a_localization_whose_tables_changed_on_the_server_link_blames_the_link(tmp_path,
+                                                                                mode):
+    """The evaluator cannot tell a garbler that sends wrong bytes from a link that changes
+    them: the record's error names neither server but the link between them. The garbler
+    here does not hear the evaluator close its link (``hold_closes``), so the evaluator's
+    word is the one that reaches the client, whatever the machine's speed; every run is
+    garbled when it is invoked (``ahead=0``), so the run whose tables change is one the
+    client waits on. The garbler does hear the evaluator's last word on the link (the
+    error it closes the link with), and passes on its code. A pair of its own: the held
+    closes are every link's of the proxy."""
+    options = Options()
+    with pair_of(tmp_path, mode, mode) as pair:
+        pair.proxy.flip_in, pair.proxy.hold_closes = FLIP_IN, True
+        try:
+            with pair.client(ahead=0) as runner, pytest.raises(IntegrityFailure) as info:
+                localize(load_problem(PROBLEM), options, GarbledBackend(runner))
+        finally:
+            pair.proxy.flip_in = None
+            pair.proxy.release()
+        with pair.client() as client:  # no server refused: the next run is served
+            np.testing.assert_array_equal(client.run(SMALL, random_bits(SMALL)),
+                                          cleartext(SMALL, random_bits(SMALL)))
+    record = json.loads(json.dumps(failure_record(info.value, options)))
+    assert record["status"] == "failed" and "rvec" not in record
+    error = record["error"]
+    assert (error["kind"], error["party"], error["run"]) == ("integrity", "server-link", 0)
+    assert "changed on the server link" in error["detail"]
+    assert "cannot tell a garbler that sends wrong bytes from a link that changes them" \
+        in error["detail"]
+    assert re.search(FOUND[mode][1], error["detail"]), error["detail"]
+    assert record["audits"] == {"runs": 1, "audited": 0, "failed": 1}
 
 
 def closed_by_peer(sock: socket.socket) -> bytes:
@@ -324,6 +366,71 @@ def test_a_connection_that_sends_nothing_is_closed_after_the_handshake_timeout(p
         assert time.monotonic() - t0 >= 3 * 0.9  # never before --handshake-timeout
     assert any("nothing sent within 3 s" in e["reason"]
                for e in pair.lines("evaluator", "connection_rejected"))
+
+
+def test_a_stranger_that_goes_silent_is_dropped_at_its_first_wrong_byte(tmp_path):
+    """Not held for --handshake-timeout (300 s here) waiting for an opening its first
+    bytes already rule out: wrong from the first byte, or from the ninth."""
+    tls_dir = make_certs(tmp_path / "tls")
+    evaluator = start_daemon("evaluator", [
+        "--tls-dir", str(tls_dir), "--log-level", "info", "--handshake-timeout", "300",
+        "--table-link", "aead"], tmp_path / "evaluator.log",
+        env={"SNAIL_CACHE_DIR": os.environ["SNAIL_CACHE_DIR"]})
+    openings = (b"GET / HTTP/1.1\r\n", PREAMBLE[:8] + b"X")
+    try:
+        for opening in openings:
+            with socket.create_connection(parse_addr(evaluator.address)) as sock:
+                sock.sendall(opening)  # and then nothing more
+                assert closed_by_peer(sock) == b""  # a minute's guard, not a timing
+        deadline = time.monotonic() + 60  # hang guard: the lines follow the closes
+        while len(refused := [e for e in map(json.loads, evaluator.log.read_text()
+                                              .splitlines())
+                              if e.get("event") == "data_link_refused"]) < len(openings):
+            assert time.monotonic() < deadline, "no data_link_refused line"
+            time.sleep(0.05)
+    finally:
+        evaluator.stop()
+    assert [e["reason"] for e in refused] == \
+        ["its first bytes are not the data link's preamble"] * len(openings)
+
+
+def test_an_opening_in_pieces_is_admitted_and_a_wrong_byte_refused_at_once():
+    """The gate (datalink.py) byte by byte: every prefix of the preamble waits for more,
+    the first byte off it is refused there, whatever came before."""
+
+    class Transport:
+        def __init__(self) -> None:
+            self.aborted = False
+
+        def get_extra_info(self, name: str) -> object:
+            return ("127.0.0.1", 1) if name == "peername" else None
+
+        def abort(self) -> None:
+            self.aborted = True
+
+    async def feed(data: bytes) -> tuple[list[int], list[bytes]]:
+        """The bytes after which the gate refused, and the openings it passed on."""
+        refusals: list[int] = []
+        port = DataPort(AEAD, 300, logging.getLogger("test"), lambda conn: None,
+                        lambda: refusals.append(len(fed)), 10, BodyPool(0))
+        admitted: list[bytes] = []
+        port.admit = lambda transport, opening: admitted.append(opening)
+        gate, transport, fed = port.gate(), Transport(), bytearray()
+        gate.connection_made(transport)
+        for byte in data:
+            if transport.aborted:
+                break
+            gate.get_buffer(1)[0] = byte
+            fed.append(byte)
+            gate.buffer_updated(1)
+        gate.connection_lost(None)
+        return refusals, admitted
+
+    token = os.urandom(TOKEN_BYTES)
+    assert asyncio.run(feed(PREAMBLE + token)) == ([], [PREAMBLE + token])
+    for at in (0, 5, len(PREAMBLE) - 1):
+        wrong = PREAMBLE[:at] + bytes([PREAMBLE[at] ^ 1]) + PREAMBLE[at + 1:] + token
+        assert asyncio.run(feed(wrong)) == ([at + 1], [])
 
 
 @pytest.mark.parametrize("evaluator_mode, garbler_mode", [("aead", "tls"), ("tls", "digest")])

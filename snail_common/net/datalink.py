@@ -26,7 +26,8 @@ ends both. The peer of a data link is the garbler its TLS connection verified.
 A connection to the port that is not TLS and brings anything but the preamble with a
 token handed out in the last ``--handshake-timeout`` seconds and not used yet is dropped at
 once and logged (``data_link_refused``): a stranger, a replay, a garbler too slow to use
-its token.
+its token. A stranger is dropped on the first byte that leaves the preamble, not held
+for the timeout waiting for the rest of an opening that cannot be one.
 """
 
 from __future__ import annotations
@@ -158,7 +159,10 @@ class _Gate(asyncio.BufferedProtocol):
 
     def buffer_updated(self, nbytes: int) -> None:
         self._got += nbytes
-        if self._got == _OPENING and self._transport is not None:
+        head = min(self._got, len(PREAMBLE))
+        if self._buf[:head] != PREAMBLE[:head]:  # public bytes: no need for compare_digest
+            self._end("its first bytes are not the data link's preamble")
+        elif self._got == _OPENING and self._transport is not None:
             self._timer.cancel()
             transport, self._transport = self._transport, None
             self._port.admit(transport, bytes(self._buf))
