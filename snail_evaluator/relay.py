@@ -113,7 +113,7 @@ class Relays:
             return await asyncio.wait_for(_dial(host, port), self.connect_timeout)
         except (OSError, asyncio.TimeoutError) as exc:
             why = str(exc) or f"no connection within {self.connect_timeout:g} s"
-            raise ProtocolError(PEER_LOST, f"the relay cannot reach the map owner at "
+            raise ProtocolError(PEER_LOST, f"cannot reach the map owner at "
                                            f"{format_addr(host, port)}: {why}") from None
 
     async def _to_owner(self, conn: Connection, writer: asyncio.StreamWriter,
@@ -139,7 +139,7 @@ class Relays:
                 writer.write(msg["data"])
                 await writer.drain()
             except OSError as exc:
-                raise ProtocolError(PEER_LOST, f"the relay lost the map owner at {named}: "
+                raise ProtocolError(PEER_LOST, f"lost the map owner at {named}: "
                                                f"{exc}") from None
             pumped.add(owner=len(msg["data"]))
 
@@ -152,7 +152,7 @@ class Relays:
             try:
                 data = await reader.read(RELAY_DATA)
             except OSError as exc:
-                raise ProtocolError(PEER_LOST, f"the relay lost the map owner at {named}: "
+                raise ProtocolError(PEER_LOST, f"lost the map owner at {named}: "
                                                f"{exc}") from None
             if not data:
                 return "map owner"
