@@ -161,10 +161,12 @@ def track_run(sequence: Sequence, options: Options, feed_fps: float | None = Non
         wall, cpu = time.perf_counter() - began, time.process_time() - cpu
         engine = _engine(tracker.backend)
         ot = _ot(tracker, len(records)) if owner else None
+        link = tracker.frames.link if owner else None
+        relayed = link is not None and link.relay is not None  # through the evaluator
     totals = summary(records, wall, cpu, tracker)
     report = _report(sequence, options, feed, records, outs, totals, engine, owner)
     if owner:
-        report.update(ot=ot, relay=False)
+        report.update(ot=ot, relay=relayed)
     return report
 
 

@@ -47,6 +47,9 @@ PROFILES = ("lan", "paper", "region", "continent")
 @click.option("--map-points", type=click.IntRange(4, 1_000_000), metavar="M",
               help="The map-owner setting: the hand-held room's M points held by a "
                    "snail-mapd on loopback, each frame's points selected from them by OT.")
+@click.option("--relay", is_flag=True,
+              help="With --map-points: the device reaches the map owner only through the "
+                   "evaluator (the client's --relay), the entry's relay true.")
 @click.option("--algorithm", type=click.Choice(["lm", "gn"]), default="lm",
               show_default=True, help="The padded first frame's algorithm.")
 @click.option("--step", type=click.Choice(["gn", "lm"]), default="gn", show_default=True,
@@ -74,7 +77,7 @@ PROFILES = ("lan", "paper", "region", "continent")
               help="Keep each entry's per-frame rows in the JSON (what --figure draws).")
 def track(points: tuple[int, ...], frames: int, sequence: str, runs_per_frame: int,
           in_flight: int | None, feed_fps: float | None, rate: float | None,
-          profile: str | None, map_points: int | None, algorithm: str, step: str,
+          profile: str | None, map_points: int | None, relay: bool, algorithm: str, step: str,
           motion_model: str, odometry: bool, backend: str, scheme: str, seed: int,
           figure: str | None, garbler: str | None, evaluator: str | None, tls_dir: str | None,
           as_json: bool, per_frame: bool) -> None:
@@ -87,11 +90,14 @@ def track(points: tuple[int, ...], frames: int, sequence: str, runs_per_frame: i
     every row)."""
     from snail_client.links import ServiceError
     from snail_client.localize import Options
+    from snail_client.relay import EVALUATOR
 
     from .netlab.namespaces import LabError, LabUnavailable
 
     if map_points and sequence != "handheld":
         raise click.UsageError("--map-points: with --sequence handheld (the map is its room)")
+    if relay and not map_points:
+        raise click.UsageError("--relay: with --map-points (it is the way to the map owner)")
     if odometry and sequence != "turbo":
         raise click.UsageError("--odometry: Turbo's (--sequence turbo)")
     if profile and (garbler or backend != "garbled"):
@@ -101,6 +107,7 @@ def track(points: tuple[int, ...], frames: int, sequence: str, runs_per_frame: i
                           runs_per_frame=runs_per_frame, in_flight=in_flight, rate=rate,
                           motion_model=motion_model,
                           scheme=scheme, garbler=garbler, evaluator=evaluator, tls_dir=tls_dir,
+                          relay=EVALUATOR if relay else None,
                           **({"solve": "circuit"} if map_points else {}))
     except ValueError as e:
         raise click.UsageError(str(e)) from None

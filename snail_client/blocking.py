@@ -63,9 +63,9 @@ class SecureRunner:
                                          connect_timeout, ahead, busy_wait, cert_name,
                                          link_timeout, scheme, audits)
 
-    def use_frame(self, handle: bytes, map_owner: str) -> None:
+    def use_frame(self, handle: bytes, map_owner: str, relay: str | None = None) -> None:
         """Map-owner circuits take this frame's map-owner inputs (see the async runner)."""
-        self._runner.use_frame(handle, map_owner)
+        self._runner.use_frame(handle, map_owner, relay)
 
     def expect(self, circuit_id: str, count: int, fixed: FixedInputs | None = None) -> None:
         """At least ``count`` invocations of ``circuit_id`` are coming, sharing the

@@ -4,7 +4,9 @@ Creates throwaway certificates in a temporary directory, starts ``python -m
 snail_evaluator`` and ``python -m snail_garbler`` as subprocesses on free ports (port 0:
 each daemon reports its port in its ``listening`` log line), and stops them on exit.
 Map owners (``python -m snail_mapd``, one per map asked for) start before the garbler,
-which may dial only the map owners it is told of (``--map-owner``).
+which may dial only the map owners it is told of (``--map-owner``), and before the
+evaluator, which is told of them too (it relays devices to them: ``--relay``); they are
+told the evaluator's address, a port held for it until it listens there.
 Their JSON logs go to files in the temporary directory; a daemon that fails to start
 raises ServiceError with the tail of its log.
 """
@@ -15,6 +17,7 @@ import contextlib
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -81,10 +84,12 @@ class Services:
 
 def start_daemon(role: str, args: list[str], log: Path, host: str = "127.0.0.1",
                  env: Mapping[str, str] | None = None,
-                 timeout: float = STARTUP_TIMEOUT, wrap: tuple[str, ...] = ()) -> Daemon:
-    """Start ``python -m snail_<role> --listen HOST:0 ARGS`` and wait until it listens;
-    ``wrap`` goes before the command (the network lab's ``ip netns exec NS``)."""
-    cmd = [*wrap, sys.executable, "-m", f"snail_{role}", "--listen", format_addr(host, 0),
+                 timeout: float = STARTUP_TIMEOUT, wrap: tuple[str, ...] = (),
+                 port: int = 0) -> Daemon:
+    """Start ``python -m snail_<role> --listen HOST:PORT ARGS`` (port 0: any free one) and
+    wait until it listens; ``wrap`` goes before the command (the network lab's ``ip
+    netns exec NS``)."""
+    cmd = [*wrap, sys.executable, "-m", f"snail_{role}", "--listen", format_addr(host, port),
            *args]
     with open(log, "wb") as err:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
@@ -131,15 +136,18 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
         started: list[Daemon] = []
         stop_with = signal.SIGTERM  # drain: the client is done with every session
         try:
-            evaluator = start_daemon("evaluator", common, root / "evaluator.log", env=env)
-            started.append(evaluator)
-            for i, map_path in enumerate(maps):
-                started.append(start_daemon("mapd", [
-                    "--map", str(map_path), "--tls-dir", str(tls_dir),
-                    "--evaluator", evaluator.address,
-                    "--log-level", MAP_OWNER_LOG_LEVEL], root / f"mapd{i}.log", env=env))
-            owners = tuple(started[1:])
-            allowed = [arg for owner in owners for arg in ("--map-owner", owner.address)]
+            # the map owners are told the evaluator's address, the evaluator theirs
+            with _held_port() if maps else contextlib.nullcontext(0) as port:
+                for i, map_path in enumerate(maps):
+                    started.append(start_daemon("mapd", [
+                        "--map", str(map_path), "--tls-dir", str(tls_dir),
+                        "--evaluator", format_addr("127.0.0.1", port),
+                        "--log-level", MAP_OWNER_LOG_LEVEL], root / f"mapd{i}.log", env=env))
+                owners = tuple(started)
+                allowed = [arg for owner in owners for arg in ("--map-owner", owner.address)]
+                evaluator = start_daemon("evaluator", [*allowed, *common],
+                                         root / "evaluator.log", env=env, port=port)
+                started.append(evaluator)
             garbler = start_daemon("garbler", ["--evaluator", evaluator.address, *allowed,
                                                *common], root / "garbler.log", env=env)
             started.append(garbler)
@@ -152,6 +160,21 @@ def embedded_services(log_level: str = "warning", env: Mapping[str, str] | None 
         finally:
             for daemon in reversed(started):
                 daemon.stop(sig=stop_with)
+
+
+@contextlib.contextmanager
+def _held_port(host: str = "127.0.0.1") -> Iterator[int]:
+    """A free port on ``host`` that nobody else takes during the block: a socket bound
+    there (never listening) with SO_REUSEADDR, beside which Linux lets the daemon started
+    on that port in the block bind and listen (its listening sockets set SO_REUSEADDR
+    too); elsewhere it is let go at once, and the port merely likely to stay free."""
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, 0))
+        port = sock.getsockname()[1]
+        if not sys.platform.startswith("linux"):
+            sock.close()
+        yield port
 
 
 def check_addresses(garbler: str | None, evaluator: str | None,

@@ -54,6 +54,9 @@ class Options(PipelineOptions):
     garbler: str | None = None
     evaluator: str | None = None
     tls_dir: str | None = None
+    # the map-owner setting: reach the map owner through this evaluator (relay.py; its
+    # EVALUATOR value: the one the runs go to), never directly
+    relay: str | None = None
     busy_wait: float = DEFAULT_BUSY_WAIT
     link_timeout: float = DEFAULT_LINK_TIMEOUT
     scheme: str = AUTO

@@ -28,6 +28,7 @@ from .inputs.options import load_frame, localize_inputs
 from .links import DEFAULT_LINK_TIMEOUT, ServiceError
 from .localize import BACKENDS, Options, backend_for, failure_record, localize
 from .progress import bar
+from .relay import EVALUATOR
 from .secure import DEFAULT_BUSY_WAIT
 from .verbosity import flags as _verbosity
 
@@ -123,13 +124,29 @@ def _options(fn: Callable) -> Callable:
     return fn
 
 
+relay_option = click.option(
+    "--relay", is_flag=False, flag_value=EVALUATOR, metavar="[HOST:PORT]",
+    help="Map-owner setting: reach the map owner through this evaluator (the flag alone: "
+         "the evaluator the runs go to), never directly, so that the map owner sees the "
+         "evaluator's address, not yours. Your TLS with the map owner runs end to end "
+         "inside: the evaluator cannot read it. Its operator must allow the map owner "
+         "(snail-evaluator --map-owner).")
+
+
+def check_relay(options: Options, owner: bool) -> None:
+    """UsageError for a --relay that leads nowhere (no map owner to reach)."""
+    if options.relay and not owner:
+        raise click.UsageError("--relay: with --map-owner or --map (it is the way to the "
+                               "map owner)")
+
+
 def _make_options(kw: dict) -> Options:
     try:
         return Options(**{k: kw[k] for k in (
             "algorithm", "mode", "solver", "backend", "max_iterations", "min_invocations",
             "pad_points", "garbler", "evaluator", "tls_dir", "do_iterations",
             "busy_wait", "max_rms_px", "cert_name", "solve", "link_timeout",
-            "scheme", "arith", "audit_rate", "evidence")})
+            "scheme", "arith", "audit_rate", "evidence", "relay")})
     except ValueError as e:
         raise click.UsageError(str(e)) from None
 
@@ -224,6 +241,7 @@ def _progress(backend: object, total: int, desc: str) -> Iterator[None]:
               help="Map-owner setting with a map owner started here on loopback with this "
                    "snail-map/1 map, for trying it out: this gives NO privacy against "
                    "yourself (this machine holds the map and the frame together).")
+@relay_option
 def localize_cmd(input_path: str | None, as_json: bool, output: str | None,
                  map_owner: str | None, map_path: str | None, **kw) -> None:
     """Find the camera pose of one image privately: from a problem file, a camera image
@@ -234,6 +252,7 @@ def localize_cmd(input_path: str | None, as_json: bool, output: str | None,
     back but is not trusted (status not_converged, degenerate, bad_fit or behind_camera;
     one line on stderr says why)."""
     options = _make_options(kw)
+    check_relay(options, bool(map_owner or map_path))
     if map_owner or map_path:
         if not input_path or kw.get("image") or kw.get("colmap"):
             raise click.UsageError("--map-owner/--map take a snail-frame/1 file as --input")

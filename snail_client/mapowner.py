@@ -5,7 +5,9 @@ The device is the receiver of the selection's OTs (its index bits are the choice
 OTs once per link). Per frame it gets xyz ^ P for its map points, P being pads only the
 map owner holds, and a frame handle that the garbler later names to the map owner for the
 iteration circuits' pad inputs. Nothing the device sends carries a 2D point, a pose or an
-id in the clear; nothing it receives carries a 3D point in the clear.
+id in the clear; nothing it receives carries a 3D point in the clear. With a ``relay``
+(an evaluator's address) the link runs through it (relay.py): the map owner sees the
+evaluator's address, not the device's.
 """
 
 from __future__ import annotations
@@ -26,20 +28,27 @@ from snail_common.ot.carry import BlobAssembler, as_words, ot_part
 from snail_common.ot.selection import MAX_TABLE_BYTES, SelectReceiver
 
 from .links import ServiceError
+from .relay import connect_relayed
 
 DEFAULT_TIMEOUT = 120.0
 
 
 class MapOwnerLink:
-    """A blocking link to the map owner at ``address`` (its own event loop)."""
+    """A blocking link to the map owner at ``address`` (its own event loop), through the
+    evaluator at ``relay`` when given."""
 
     def __init__(self, address: str, tls_dir: str | Path, cert_name: str = "client",
-                 timeout: float = DEFAULT_TIMEOUT) -> None:
+                 timeout: float = DEFAULT_TIMEOUT, relay: str | None = None) -> None:
         try:
             self.host, self.port = parse_addr(address)
         except ValueError as exc:
             raise ValueError(f"--map-owner: {exc}") from None
-        self.address = address
+        if relay is not None:
+            try:
+                parse_addr(relay)
+            except ValueError as exc:
+                raise ValueError(f"--relay: {exc}") from None
+        self.address, self.relay = address, relay
         self.ctx = tls.client_context(tls_dir, "client", cert_name)
         self.timeout = timeout
         self.published: PublishedMap | None = None
@@ -83,8 +92,10 @@ class MapOwnerLink:
             raise ServiceError(f"map owner at {self.address}: {exc}") from None
 
     async def _open(self) -> PublishedMap:
-        conn = self._conn = await connect(self.host, self.port, self.ctx, "client",
-                                          "mapowner", self.timeout)
+        conn = self._conn = await (
+            connect(self.host, self.port, self.ctx, "client", "mapowner", self.timeout)
+            if self.relay is None else
+            connect_relayed(self.relay, self.address, self.ctx, self.timeout))
         conn.write(messages.make("map_info_request"))
         msg = await conn.expect("map_info")
         first, parts, have = msg, [msg["ids"]], len(msg["ids"]) // 4

@@ -5,6 +5,8 @@ Per frame the device selects its map points obliviously from the map owner (it g
 under the map owner's pads, mapowner.py), names the frame handle to the secure runner, and
 runs the map-owner circuit (snail_common.loc.owner): its share of the points goes in as
 labels it derives, the map owner's pads by OT between the map owner and the garbler.
+With ``--relay`` the device reaches the map owner only through the evaluator (relay.py),
+so the map owner never sees its address.
 
 ``--map`` starts a map owner on loopback with that map (with the embedded servers, which
 are told to allow it, or beside remote ones with --tls-dir, whose garbler must allow its
@@ -31,7 +33,8 @@ from .audit import IntegrityFailure
 from .embedded import connected, start_daemon
 from .localize import RESULT_FORMAT, GarbledBackend, Options, audit_counts, audits_since
 from .mapowner import MapOwnerLink
-from .sessions import LINKS, OWNER_LINKS
+from .relay import EVALUATOR
+from .sessions import LINKS, OWNER_LINKS, parse_address
 
 MAP_OWNER_LINKS = ("client_to_mapowner", "mapowner_to_client", *OWNER_LINKS)
 
@@ -49,6 +52,10 @@ def check(options: Options, map_owner: str | None, map_path: str | None) -> None
     if map_owner and not options.tls_dir:
         raise ValueError("--map-owner needs --tls-dir with the CA the map owner trusts "
                          "(and --garbler/--evaluator)")
+    if options.relay and options.backend != "garbled":
+        raise ValueError("--relay: only --backend garbled reaches a map owner")
+    if options.relay not in (None, EVALUATOR):
+        parse_address(options.relay, "--relay")
 
 
 def localize_frame(path: str, options: Options, map_owner: str | None,
@@ -90,8 +97,9 @@ def session(options: Options, map_owner: str | None, map_path: str | None
         if services is not None and services.map_owners:
             map_owner = services.map_owners[0].address
         evaluator = options.evaluator or (services.evaluator_addr if services else None)
+        relay = evaluator if options.relay == EVALUATOR else options.relay
         with _map_owner(map_owner, map_path, tls_dir, evaluator) as address, \
-                MapOwnerLink(address, tls_dir, options.cert_name) as link:
+                MapOwnerLink(address, tls_dir, options.cert_name, relay=relay) as link:
             yield GarbledBackend(runner), link, None
 
 
@@ -104,7 +112,7 @@ def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
     audited = audit_counts(backend)
     published = link.published or link.open()
     handle, masked = link.select(frame.map_ids)
-    backend.secure.use_frame(handle, link.address)
+    backend.secure.use_frame(handle, link.address, link.relay)
     backend.frame = handle  # this frame's runs (frames in flight: each names its own)
     try:
         result = localize_shared(frame, published, masked, options, backend, start, runs)

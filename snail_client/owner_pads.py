@@ -7,7 +7,8 @@ that frame's pads P XOR r, once per session, and XORs it into its own share: xyz
 becomes xyz ^ r, which the circuit XORs with the map owner's r (free) as it did with P.
 The device learns P ^ r, a one-time pad of P under r that only the map owner knows, so
 nothing of a point. One link per runner, on the runner's event loop, answers matched by
-sid, so the runs of frames in flight ask at the same time.
+sid, so the runs of frames in flight ask at the same time; through the evaluator at
+``relay`` when given (relay.py), as the device's selections go.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from snail_common.net.conn import Connection, connect, parse_addr
 from snail_common.net.errors import ConnectionClosed, ProtocolError, RemoteError
 
 from .links import ServiceError
+from .relay import connect_relayed
 
 
 class OwnerRefused(ServiceError):
@@ -31,11 +33,12 @@ class OwnerRefused(ServiceError):
 
 
 class PadCorrections:
-    """Pad corrections from the map owner at ``address`` (connected on first use)."""
+    """Pad corrections from the map owner at ``address`` (connected on first use, through
+    the evaluator at ``relay`` when given)."""
 
     def __init__(self, address: str, ctx: ssl.SSLContext, connect_timeout: float,
-                 timeout: float) -> None:
-        self.address = address
+                 timeout: float, relay: str | None = None) -> None:
+        self.address, self.relay = address, relay
         self.host, self.port = parse_addr(address)
         self.ctx, self.connect_timeout, self.timeout = ctx, connect_timeout, timeout
         self.used = 0  # corrections received
@@ -88,8 +91,11 @@ class PadCorrections:
         async with self._opening:
             if self._conn is None or self._conn.ended:
                 try:
-                    self._conn = await connect(self.host, self.port, self.ctx, "client",
-                                               "mapowner", self.connect_timeout)
+                    self._conn = await (
+                        connect(self.host, self.port, self.ctx, "client", "mapowner",
+                                self.connect_timeout) if self.relay is None else
+                        connect_relayed(self.relay, self.address, self.ctx,
+                                        self.connect_timeout))
                 except (ConnectionClosed, ProtocolError, RemoteError, TimeoutError, OSError) as exc:
                     raise OwnerRefused(f"cannot reach the map owner at {self.address}: "
                                        f"{exc}") from None

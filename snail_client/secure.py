@@ -138,15 +138,16 @@ class AsyncSecureRunner:
         self.frame: tuple[bytes, str] | None = None  # see use_frame
         self.pads: PadCorrections | None = None  # the map owner's per-run word
 
-    def use_frame(self, handle: bytes, map_owner: str) -> None:
+    def use_frame(self, handle: bytes, map_owner: str, relay: str | None = None) -> None:
         """Runs of map-owner circuits from now on take the map owner's inputs of this
         frame unless they name their own (the handle its selection gave; its address as
         the garbler and this device reach it). Sessions garbled ahead serve any frame:
-        each takes its frame's pad correction when it runs (owner_pads.py)."""
+        each takes its frame's pad correction when it runs (owner_pads.py), through the
+        evaluator at ``relay`` when given (relay.py)."""
         self.frame = (handle, map_owner)
-        if self.pads is None or self.pads.address != map_owner:
+        if self.pads is None or (self.pads.address, self.pads.relay) != (map_owner, relay):
             self.pads = PadCorrections(map_owner, self.ctx, self.connect_timeout,
-                                       self.timeout)
+                                       self.timeout, relay)
 
     async def _open(self, role: str, addr: tuple[str, int]) -> Link:
         """A link to the ``role`` replica at ``addr``; its certificate must carry the name

@@ -235,9 +235,9 @@ class ThreadedRunner:
     def fixed(self, circuit_id: str) -> FixedInputs | None:
         return self.secure.fixed(circuit_id)
 
-    def use_frame(self, handle: bytes, map_owner: str) -> None:
+    def use_frame(self, handle: bytes, map_owner: str, relay: str | None = None) -> None:
         async def use() -> None:
-            self.secure.use_frame(handle, map_owner)
+            self.secure.use_frame(handle, map_owner, relay)
 
         self._submit(use())
 

@@ -31,7 +31,16 @@ from . import owner_localize
 from .inputs.options import load_frames, track_inputs
 from .links import ServiceError
 from .localize import MAX_IN_FLIGHT, Options, backend_for
-from .localize_cmd import _fail, _make_options, _options, _result_line, _untrusted, _write
+from .localize_cmd import (
+    _fail,
+    _make_options,
+    _options,
+    _result_line,
+    _untrusted,
+    _write,
+    check_relay,
+    relay_option,
+)
 from .progress import bar
 from .track_frames import MapFrames, Problems
 from .tracking import Item, Tracker, summary
@@ -101,6 +110,7 @@ def _tracking_options(fn):
               metavar="MAP.json",
               help="Map-owner setting with a map owner started here with this snail-map/1 "
                    "map, for trying it out (no privacy against yourself).")
+@relay_option
 @click.option("--fail-fast", is_flag=True,
               help="Stop at the first frame that fails or is not trusted.")
 @_tracking_options
@@ -126,6 +136,7 @@ def track_cmd(input_path: str | None, as_json: bool, output: str | None, fail_fa
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     owner = bool(map_owner or map_path)
+    check_relay(options, owner)
     if owner:
         if not input_path or kw.get("image_dir"):
             raise click.UsageError("--map-owner/--map take a sequence of snail-frame/1 as "

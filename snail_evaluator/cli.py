@@ -8,6 +8,7 @@ from snail_common import families
 from snail_common.net import tls
 from snail_common.net.cli import (
     address,
+    addresses,
     arm_failpoints,
     choose_engine,
     configure_caches,
@@ -27,8 +28,18 @@ from .daemon import EvaluatorDaemon
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--listen", required=True, callback=address, metavar="HOST:PORT",
               help="Address to accept clients and the garbler on (port 0: any free port).")
+@click.option("--map-owner", "map_owners", multiple=True, callback=addresses,
+              metavar="HOST:PORT",
+              help="A map owner (snail-mapd) this evaluator may relay devices to, so that "
+                   "the map owner sees this evaluator's address and never a device's "
+                   "(repeatable). The device's TLS with the map owner runs end to end "
+                   "through the relay: the evaluator cannot read it. Devices name the map "
+                   "owner; the evaluator dials only the ones allowed here, so that no "
+                   "client can make it connect wherever it likes. Default: none, and "
+                   "relays are refused. Names are resolved as the garbler's --map-owner.")
 @daemon_options
-def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> None:
+def main(listen: tuple[str, int], map_owners: tuple[tuple[str, int], ...], tls_dir: str,
+         log_level: str, **kwargs) -> None:
     """Evaluator daemon: evaluates the garbler's table stream on each client's active input
     labels and returns the active output labels (see snail_evaluator.daemon)."""
     exit_with_parent()
@@ -36,7 +47,8 @@ def main(listen: tuple[str, int], tls_dir: str, log_level: str, **kwargs) -> Non
     arm_failpoints("evaluator", "snail-evaluator", logger)
     try:
         ctx = tls.server_context(tls_dir, "evaluator")
-        daemon = EvaluatorDaemon(options_from({**kwargs, "tls_dir": tls_dir}), logger)
+        daemon = EvaluatorDaemon(options_from({**kwargs, "tls_dir": tls_dir}), logger,
+                                 map_owners)
     except (OSError, ValueError) as exc:
         fail(2, f"--tls-dir: {exc}", "snail-evaluator")
     families.register_all()

@@ -1,6 +1,7 @@
 """The client's half of an evaluator session: ``session_start``, its input labels (some
 may come before the circuit is loaded, and are replayed once it is) and cancellations.
-Mixed into ``EvaluatorDaemon``, whose session book (``daemon.py``) it uses."""
+Mixed into ``EvaluatorDaemon``, whose session book (``daemon.py``) it uses. A connection
+that opens with ``relay_open`` is a relay to a map owner instead (``relay.py``)."""
 
 from __future__ import annotations
 
@@ -33,11 +34,20 @@ class ClientSide:
         for a session does not hold up the connection (a client probes a quiet link with
         ``health_request`` and gives it up if unanswered)."""
         loading: set[asyncio.Task] = set()
+        first = True
         try:
             while True:
                 msg, size = await self.next_message(
                     conn, lambda: any(s.client is conn for s in self.sessions.values()))
                 kind = msg["t"]
+                if kind == "relay_open":
+                    if not first:
+                        raise ProtocolError(UNEXPECTED, "relay_open opens a connection of "
+                                                        "its own: it must be the first "
+                                                        "message after hello")
+                    await self.relays.serve(conn, msg)
+                    return
+                first = False
                 if kind == "session_start":
                     s = self._client_start(conn, msg, size)
                     if s is not None:

@@ -21,7 +21,8 @@ client always gets an ``error`` naming what happened, and the session is freed (
 ``health`` counters). The evaluator never receives a seed or the offset delta.
 
 The client's half is ``client_side.py``, the garbler's ``tables.py``, a session's state
-``session.py``; this module keeps the session book where the halves meet.
+``session.py``; this module keeps the session book where the halves meet. A client
+connection may instead be a relay to a map owner its operator allowed (``relay.py``).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import logging
 import ssl
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -49,12 +50,14 @@ from snail_common.net.errors import (
 )
 from snail_common.net.logs import event
 from snail_common.net.metrics import OK
+from snail_common.net.replicas import Address
 from snail_common.net.service import Daemon, Options
 from snail_common.net.sharedport import SharedPort
 
 from .client_side import ClientSide
 from .lanes import LaneBatcher
 from .owner import EarlyOwnerLabels
+from .relay import Relays
 from .session import Session, consume_failure
 from .tables import GarblerSide
 
@@ -65,8 +68,12 @@ class EvaluatorDaemon(ClientSide, GarblerSide, Daemon):
     role = "evaluator"
     allowed = ("client", "garbler", "mapowner")
 
-    def __init__(self, options: Options, logger: logging.Logger) -> None:
+    def __init__(self, options: Options, logger: logging.Logger,
+                 map_owners: Iterable[Address] = ()) -> None:
         super().__init__(options, logger)
+        # the only map owners this evaluator relays devices to (--map-owner)
+        self.relays = Relays(map_owners, options.handshake_timeout, options.idle_timeout,
+                             logger)
         self.sessions: dict[bytes, Session] = {}
         self.ended: OrderedDict[bytes, ProtocolError] = OrderedDict()  # sid -> why
         self.lanes = LaneBatcher(options.lane_window_ms / 1000, options.max_lanes)

@@ -345,17 +345,21 @@ class Connection(asyncio.BufferedProtocol):
 
 async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_role: str,
                   timeout: float = 10.0, max_frame: int = MAX_FRAME,
-                  server_name: str | None = None) -> Connection:
+                  server_name: str | None = None, sock: socket.socket | None = None,
+                  factory: Callable[[], Connection] | None = None) -> Connection:
     """Open a TLS connection as ``role`` to a server that must be ``expect_role``;
     returns it after the hello/capabilities exchange. The server's certificate must name
     ``server_name`` (default ``host``): a replica dialled at the address a service name
-    resolved to is checked against the service name, which its certificate carries."""
+    resolved to is checked against the service name, which its certificate carries.
+    ``sock``: a socket already connected to that server some other way (a relay's end:
+    snail_client/relay.py), over which TLS runs instead of dialling ``host``;
+    ``factory``: the connection object (a Connection of ``max_frame`` by default)."""
     where = f"the {expect_role} at {format_addr(host, port)}"
     try:
         _, conn = await asyncio.wait_for(_open(
-            lambda: Connection(max_frame), host, port, ctx, timeout,
+            factory or (lambda: Connection(max_frame)), host, port, ctx, timeout,
             bursts=role in BURST_ROLES or expect_role in BURST_ROLES,
-            server_name=server_name or host), timeout)
+            server_name=server_name or host, sock=sock), timeout)
     except asyncio.TimeoutError:
         raise ConnectionClosed(f"connecting to {where} timed out") from None
     except (OSError, ssl.SSLError) as exc:
@@ -379,10 +383,15 @@ async def connect(host: str, port: int, ctx: ssl.SSLContext, role: str, expect_r
 
 async def _open(factory: Callable[[], Connection], host: str, port: int,
                 ctx: ssl.SSLContext, timeout: float, bursts: bool,
-                server_name: str) -> tuple[Any, Connection]:
+                server_name: str, sock: socket.socket | None = None
+                ) -> tuple[Any, Connection]:
     """create_connection, on a socket set up for small bursts before it connects when
-    ``bursts`` (module doc)."""
+    ``bursts`` (module doc), or over ``sock``, connected already."""
     loop = asyncio.get_running_loop()
+    if sock is not None:
+        return await loop.create_connection(factory, sock=sock, ssl=ctx,
+                                            server_hostname=server_name,
+                                            ssl_handshake_timeout=timeout)
     if not bursts:
         return await loop.create_connection(factory, host, port, ssl=ctx,
                                             server_hostname=server_name,

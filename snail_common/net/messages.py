@@ -50,6 +50,14 @@ garbler -> mapowner          per session, as it is garbled (ahead of its run)
                              owner answers ``done`` or ``error``
 mapowner -> evaluator        ``owner_labels`` chunks: the labels of the map owner's wires
                              (the last ``count`` input wires of the circuit)
+client -> evaluator (relay)  ``relay_open`` {map_owner}, first on a connection of its own
+                             (snail_evaluator/relay.py): the evaluator answers
+                             ``relay_ready`` once it has a TCP connection to that map owner
+                             (one its operator allowed with ``--map-owner``, else
+                             ``forbidden`` and no connection), or ``error``; then both
+                             ways only ``relay_data`` {data} (at most ``RELAY_DATA`` bytes of
+                             the device's end-to-end TLS with the map owner, which the
+                             evaluator cannot read), until ``bye`` or a close from either end
 ``garble_request`` carries the ``map_owner`` address when the
 circuit takes map-owner inputs, and names the evaluator replica the client talks to
 (``evaluator``: its address as the client reached it, ``evaluator_id``: the ``instance``
@@ -88,6 +96,7 @@ MAX_LABELS = 1 << 28
 DATA_CHUNK = 2 << 20  # bytes of a chunked blob (sel_table, map_info ids) per message
 MAX_OT_BYTES = 3 << 20  # one OT message body (u or y): 98,304 chosen OTs
 MAX_ADDRESS = 300  # HOST:PORT
+RELAY_DATA = 256 << 10  # bytes of the relayed TLS stream per relay_data frame
 POINT_BYTES = 32  # an Ed25519 point (ot/group.py)
 MAX_ENDORSEMENT = 80  # a DER ECDSA P-256 signature: at most 72 bytes
 BASE_OTS = 128
@@ -233,6 +242,10 @@ SCHEMA: dict[str, tuple[dict[str, Validator], dict[str, Validator]]] = {
     "pad_correction_request": ({"frame": key16, "sid": sid}, {}),
     "pad_correction": ({"sid": sid, "correction": blob(max_size=MAX_OT_BYTES)}, {}),
     "owner_labels": ({"sid": sid, "start": count, "total": count, "labels": labels}, {}),
+    # the relay: a device reaches its map owner through the evaluator
+    "relay_open": ({"map_owner": text(MAX_ADDRESS)}, {}),
+    "relay_ready": ({}, {}),
+    "relay_data": ({"data": blob(max_size=RELAY_DATA)}, {}),
 }
 
 
