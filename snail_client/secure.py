@@ -251,7 +251,10 @@ class AsyncSecureRunner:
             raise ServiceError(f"{circuit_id}: {exc}", exc.code, retry=False) from None
         except (ServiceError, ConnectionClosed) as exc:
             self._cancel(session)
-            failed = ServiceError(f"{circuit_id}: {exc}", getattr(exc, "code", None),
+            # a write that found the evaluator's link closing is its loss, retryable like
+            # one the link reported: its connection_lost may not have come yet
+            code = PEER_LOST if isinstance(exc, ConnectionClosed) else exc.code
+            failed = ServiceError(f"{circuit_id}: {exc}", code,
                                   getattr(exc, "link", None) or session.evaluator)
             failed.retry = retryable(failed, session, self.replicas)
             blame(failed, session, self.replicas.values())
