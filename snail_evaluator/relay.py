@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import socket
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from snail_common.net import messages
-from snail_common.net.conn import Connection, format_addr, prefer_bursts
+from snail_common.net.conn import Connection, format_addr
+from snail_common.net.dial import dial_tcp
 from snail_common.net.errors import (
     FORBIDDEN,
     PEER_LOST,
@@ -182,23 +182,6 @@ async def _first(pumps: list) -> str:
 
 
 async def _dial(host: str, port: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-    """Streams over a TCP connection to ``host``, its socket set up for small bursts
-    before it connects (a device's link: snail_common/net/conn.py's module doc)."""
-    loop = asyncio.get_running_loop()
-    failure: OSError = OSError(f"no address for {host}")
-    for family, kind, proto, _, addr in await loop.getaddrinfo(host, port,
-                                                               type=socket.SOCK_STREAM):
-        sock = socket.socket(family, kind, proto)
-        try:
-            sock.setblocking(False)
-            prefer_bursts(sock)
-            await loop.sock_connect(sock, addr)
-        except OSError as exc:
-            sock.close()
-            failure = exc
-            continue
-        except BaseException:
-            sock.close()
-            raise
-        return await asyncio.open_connection(sock=sock, limit=RELAY_DATA)
-    raise failure
+    """Streams over a TCP connection to ``host``, dialled for small bursts (a device's
+    link: snail_common/net/dial.py)."""
+    return await asyncio.open_connection(sock=await dial_tcp(host, port), limit=RELAY_DATA)

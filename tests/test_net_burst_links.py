@@ -1,5 +1,5 @@
 """Links with a client at one end use cubic congestion control from their first packet
-(conn.py module doc: BBR paces a small burst after idle over a good part of a round
+(dial.py module doc: BBR paces a small burst after idle over a good part of a round
 trip, and a socket that started under BBR stays paced); the garbler's table stream to
 the evaluator keeps the kernel's choice."""
 
@@ -15,7 +15,8 @@ import pytest
 
 from snail_client.secure import AsyncSecureRunner
 from snail_common.circuit import registry
-from snail_common.net.conn import BURST_CONGESTION, parse_addr, prefer_bursts
+from snail_common.net.conn import parse_addr
+from snail_common.net.dial import BURST_CONGESTION, prefer_bursts
 from tests.daemons import daemons_with
 
 CIRCUIT = "ops/fmul-x4"

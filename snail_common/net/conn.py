@@ -11,16 +11,7 @@ evaluator.
 Opening: the connecting side sends ``hello``, the server answers ``capabilities`` (or an
 ``error`` and closes). The authoritative role of a peer is the one in its certificate.
 
-A link with a client or a map owner at one end carries one small burst per invocation
-(labels: a few to tens of kB) after an idle spell, and a round trip waits on it. BBR,
-where it is the kernel's default, paces such a burst at the rate it estimated from the
-earlier small bursts: ~10 ms for 11 kB at a 40 ms round trip. Those links therefore use
-cubic, which sends a burst that fits the initial window at once (the kernel's choice
-stays where cubic is not allowed). It is set before the connection exists: a socket that
-started under BBR stays paced after a switch. Servers set it on their listening sockets
-(their peers' bursts are small; the evaluator's end of the garbler's table stream only
-acknowledges), clients and map owners on the sockets they connect; the garbler's
-connections to the evaluator, which carry the table stream, keep the kernel's choice.
+Links with a client or a map owner at one end are dialled for small bursts (dial.py).
 """
 
 from __future__ import annotations
@@ -35,6 +26,7 @@ from collections.abc import Callable
 from typing import Any
 
 from . import messages
+from .dial import BURST_ROLES, dial_tcp
 from .errors import (
     FORBIDDEN,
     TIMEOUT,
@@ -48,8 +40,6 @@ from .seal import FrameSeal
 from .tls import Identity, peer_identity
 
 SOFTWARE = "snail/0.1"
-BURST_ROLES = ("client", "mapowner")  # links with one of these at an end: small bursts
-BURST_CONGESTION = b"cubic"
 WRITE_HIGH = 4 << 20  # drain() waits while more than this is buffered for sending
 INBOX = 3  # decoded frames read ahead
 _ADDR = re.compile(r"^(?:\[(?P<v6>[0-9a-fA-F:.]+)\]|(?P<host>[A-Za-z0-9_.-]+)):(?P<port>\d{1,5})$")
@@ -386,43 +376,17 @@ async def _open(factory: Callable[[], Connection], host: str, port: int,
                 server_name: str, sock: socket.socket | None = None
                 ) -> tuple[Any, Connection]:
     """create_connection, on a socket set up for small bursts before it connects when
-    ``bursts`` (module doc), or over ``sock``, connected already."""
+    ``bursts`` (dial.py), or over ``sock``, connected already."""
     loop = asyncio.get_running_loop()
+    if sock is None and bursts:
+        sock = await dial_tcp(host, port)
     if sock is not None:
         return await loop.create_connection(factory, sock=sock, ssl=ctx,
                                             server_hostname=server_name,
                                             ssl_handshake_timeout=timeout)
-    if not bursts:
-        return await loop.create_connection(factory, host, port, ssl=ctx,
-                                            server_hostname=server_name,
-                                            ssl_handshake_timeout=timeout)
-    failure: OSError = OSError(f"no address for {host}")
-    for family, kind, proto, _, addr in await loop.getaddrinfo(host, port,
-                                                               type=socket.SOCK_STREAM):
-        sock = socket.socket(family, kind, proto)
-        try:
-            sock.setblocking(False)
-            prefer_bursts(sock)
-            await loop.sock_connect(sock, addr)
-        except OSError as exc:
-            sock.close()
-            failure = exc
-            continue
-        except BaseException:
-            sock.close()
-            raise
-        return await loop.create_connection(factory, sock=sock, ssl=ctx,
-                                            server_hostname=server_name,
-                                            ssl_handshake_timeout=timeout)
-    raise failure
-
-
-def prefer_bursts(sock: socket.socket) -> None:
-    """Cubic congestion control for a link of small bursts (module doc), where the kernel
-    allows it; the kernel's choice otherwise."""
-    if hasattr(socket, "TCP_CONGESTION"):
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, BURST_CONGESTION)
+    return await loop.create_connection(factory, host, port, ssl=ctx,
+                                        server_hostname=server_name,
+                                        ssl_handshake_timeout=timeout)
 
 
 async def accept(conn: Connection, capabilities: dict[str, Any], allowed: tuple[str, ...],

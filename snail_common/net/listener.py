@@ -25,7 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from . import messages
-from .conn import Connection, accept, prefer_bursts
+from .conn import Connection, accept
+from .dial import prefer_bursts
 from .errors import BUSY, INTERNAL, REVOKED, ConnectionClosed, ProtocolError, RemoteError
 from .frames import MAX_FRAME, BodyPool
 from .logs import announce, event
@@ -89,7 +90,7 @@ class Listener:
         shares its port with the table data links: sharedport.py)."""
         server = await asyncio.get_running_loop().create_server(
             factory, host, port, ssl=ctx, ssl_handshake_timeout=self.options.handshake_timeout)
-        for sock in server.sockets:  # accepted links inherit it (conn.py module doc)
+        for sock in server.sockets:  # accepted links inherit it (dial.py module doc)
             prefer_bursts(sock)
         return server
 

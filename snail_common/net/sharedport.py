@@ -16,7 +16,8 @@ import socket
 import ssl
 from collections.abc import Callable
 
-from .conn import format_addr, prefer_bursts
+from .conn import format_addr
+from .dial import prefer_bursts
 
 TLS_HANDSHAKE = 0x16  # the content type of a TLS handshake record
 BACKLOG = 128
@@ -47,7 +48,7 @@ class SharedPort:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 if family == socket.AF_INET6:
                     sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
-                prefer_bursts(sock)  # accepted links inherit it (conn.py module doc)
+                prefer_bursts(sock)  # accepted links inherit it (dial.py module doc)
                 sock.bind(addr[:2] if not self.sockets else (addr[0], self.port))
                 sock.listen(BACKLOG)
                 sock.setblocking(False)
