@@ -8,13 +8,13 @@ from snail_common import families
 from snail_common.net import tls
 from snail_common.net.cli import (
     address,
-    addresses,
     arm_failpoints,
     choose_engine,
     configure_caches,
     daemon_options,
     fail,
     log_level_of,
+    map_owner_option,
     options_from,
 )
 from snail_common.net.conn import format_addr
@@ -28,15 +28,11 @@ from .daemon import EvaluatorDaemon
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--listen", required=True, callback=address, metavar="HOST:PORT",
               help="Address to accept clients and the garbler on (port 0: any free port).")
-@click.option("--map-owner", "map_owners", multiple=True, callback=addresses,
-              metavar="HOST:PORT",
-              help="A map owner (snail-mapd) this evaluator may relay devices to, so that "
-                   "the map owner sees this evaluator's address and never a device's "
-                   "(repeatable). The device's TLS with the map owner runs end to end "
-                   "through the relay: the evaluator cannot read it. Devices name the map "
-                   "owner; the evaluator dials only the ones allowed here, so that no "
-                   "client can make it connect wherever it likes. Default: none, and "
-                   "relays are refused. Names are resolved as the garbler's --map-owner.")
+@map_owner_option("evaluator", "to relay devices, so that the map owner sees this "
+                  "evaluator's address and never a device's", "relays",
+                  how="The device's TLS with the map owner runs end to end through the "
+                      "relay: the evaluator cannot read it.",
+                  names="Names are resolved as the garbler's --map-owner.")
 @daemon_options
 def main(listen: tuple[str, int], map_owners: tuple[tuple[str, int], ...], tls_dir: str,
          log_level: str, **kwargs) -> None:

@@ -15,6 +15,7 @@ from snail_common.net.cli import (
     daemon_options,
     fail,
     log_level_of,
+    map_owner_option,
     options_from,
 )
 from snail_common.net.conn import format_addr
@@ -36,15 +37,10 @@ from .daemon import GarblerDaemon
                    "talks to, which the client names by address and instance id. These "
                    "are the only evaluators this garbler dials: a client naming another "
                    "is refused as forbidden.")
-@click.option("--map-owner", "map_owners", multiple=True, callback=addresses,
-              metavar="HOST:PORT",
-              help="A map owner (snail-mapd) this garbler may dial for the map-owner setting "
-                   "(repeatable). Clients name the map owner in their requests; the garbler "
-                   "dials only the ones allowed here, so that no client can make it connect "
-                   "wherever it likes. Default: none, and map-owner sessions are refused. "
-                   "The name is resolved (to all its addresses): clients may name it as "
-                   "given here or by one of its addresses; a client's own host name is "
-                   "compared, never resolved.")
+@map_owner_option("garbler", "for the map-owner setting", "map-owner sessions",
+                  names="The name is resolved (to all its addresses): clients may name it "
+                        "as given here or by one of its addresses; a client's own host "
+                        "name is compared, never resolved.")
 @daemon_options
 def main(listen: tuple[str, int], evaluators: tuple[tuple[str, int], ...],
          map_owners: tuple[tuple[str, int], ...], tls_dir: str, log_level: str,

@@ -39,6 +39,20 @@ def addresses(ctx: click.Context, param: click.Parameter,
     return tuple(address(ctx, param, value) for value in values)
 
 
+def map_owner_option(role: str, dials_to: str, refused: str, how: str = "",
+                     names: str = "") -> Callable[..., Any]:
+    """``--map-owner HOST:PORT`` (repeatable, as ``map_owners``): the map owners a server
+    may dial ``dials_to`` do something, and no others (a client naming another is
+    refused: no client can make a server connect wherever it likes). ``how`` and
+    ``names`` add the role's own sentences before and after that rule."""
+    text = (f"A map owner (snail-mapd) this {role} may dial {dials_to} (repeatable). "
+            f"{how + ' ' if how else ''}Clients name the map owner; the {role} dials only "
+            f"the ones allowed here, so that no client can make it connect wherever it "
+            f"likes. Default: none, and {refused} are refused.{' ' + names if names else ''}")
+    return click.option("--map-owner", "map_owners", multiple=True, callback=addresses,
+                        metavar="HOST:PORT", help=text)
+
+
 def daemon_options(fn: Callable[..., Any]) -> Callable[..., Any]:
     """The flags every daemon takes (besides its addresses)."""
     defaults = Options()
