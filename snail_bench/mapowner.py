@@ -147,7 +147,9 @@ def map_owner_row(runner, tls_dir: Path, daemon: Daemon, frame: Frame, points: M
             "map_owner_s_source": LOG_SOURCE,
             "bytes_to_device": per_frame["mapowner_to_client"],
             "bytes_from_device": per_frame["client_to_mapowner"],
-            "bytes_source": CLIENT_SOURCE, "frames": len(selections)},
+            "bytes_source": f"{CLIENT_SOURCE}: the device's link with the map owner, the "
+                            f"selection and each run's pad correction",
+            "frames": len(selections)},
         "pad_ot": {
             "ots_per_invocation": PAD_BITS_PER_POINT * n, "per": "invocation",
             "kind": "chosen-message IKNP, garbler sender, map owner receiver",

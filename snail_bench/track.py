@@ -252,12 +252,12 @@ def _ot(tracker: Tracker, frames: int) -> dict | None:
     was done before the run began, runs that took a pad correction, and the device's
     time a frame on the map owner's account (selection and corrections)."""
     secure = getattr(tracker.backend, "secure", None)
-    pads = getattr(getattr(secure, "async_runner", None), "pads", None)
+    owner = getattr(getattr(secure, "async_runner", None), "owner", None)
     link = tracker.frames.link
-    if pads is None or link is None:
+    if owner is None or owner.frame is None or link is None:
         return None
-    return {"precomputed": pads.precomputed, "used": pads.used,
-            "per_frame_s": round((link.select_s + pads.seconds) / max(frames, 1), 6)}
+    return {"precomputed": owner.precomputed, "used": owner.used,
+            "per_frame_s": round((link.select_s + owner.seconds) / max(frames, 1), 6)}
 
 
 def _engine(backend: object) -> str | None:

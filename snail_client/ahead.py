@@ -125,12 +125,16 @@ class AheadPool:
         run's shared labels first, else one kept warm. Sessions no run can use any more
         go (cancelled); those of another frame still under way stay for it (frames in
         flight). A map-owner session serves any frame: the map owner's share is bound to
-        the frame only when it runs (snail_mapd/pads.py)."""
+        the frame only when it runs (snail_mapd/pads.py). A session whose tables the
+        evaluator found changed is handed over, to fail its run: that is not a failure
+        to pass over in silence (a link that changes bytes, or a garbler)."""
         queue = self._prepared.get(circuit_id)
         if not queue:
             return None
         for session in [x for x in queue if not x.usable]:
             queue.remove(session)
+            if session.tables_changed:  # changed on the server link while garbled ahead:
+                return session  # the run fails on the evaluator's word, naming the link
             if session.refused:
                 self.refused()
             self._cancel(session)  # expired or evicted

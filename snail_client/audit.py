@@ -52,7 +52,7 @@ import numpy as np
 from snail_common.gc import IntegrityError, decode_output_labels
 from snail_common.gc.attest import Statement, outputs_digest
 from snail_common.gc.stream import scheme_id
-from snail_common.net.errors import DIGEST, LINK
+from snail_common.net.errors import TABLES_CHANGED
 
 from . import evidence
 from .links import Link, ServiceError
@@ -69,8 +69,6 @@ DEFAULT_AUDIT_RATE = 1 / 8
 _DRAW = 1 << 53
 INTEGRITY = "integrity"
 SERVER_LINK = "server-link"
-# the evaluator's codes for tables that reached it changed: the garbler's or the link's doing
-TABLES_CHANGED = frozenset({LINK, DIGEST})
 T = TypeVar("T")
 
 

@@ -108,7 +108,7 @@ def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
               runs: int | None = None) -> dict:
     """One frame over an open map-owner link and a garbled backend: padded from its own
     initial pose, or (a stream's tracking schedule) exactly ``runs`` from ``start``."""
-    before = {**backend.traffic(), **link.traffic}
+    before = _bytes(backend.traffic(), link.traffic)
     audited = audit_counts(backend)
     published = link.published or link.open()
     handle, masked = link.select(frame.map_ids)
@@ -119,12 +119,18 @@ def run_frame(frame: Frame, link: MapOwnerLink, backend: GarbledBackend,
     except IntegrityFailure as exc:  # the frame's audits go with its failure
         exc.audits = audits_since(audited, audit_counts(backend))
         raise
-    after = {**backend.traffic(), **link.traffic}
+    after = _bytes(backend.traffic(), link.traffic)
     out = record(result, options, {k: after.get(k, 0) - before.get(k, 0)
                                    for k in (*LINKS, *MAP_OWNER_LINKS)},
                  tracked=runs is not None)
     out["audits"] = audits_since(audited, audit_counts(backend))
     return out
+
+
+def _bytes(runs: dict[str, int], selections: dict[str, int]) -> dict[str, int]:
+    """Bytes per link so far: the runs' (the device's pad corrections among them) and the
+    map-owner link's (the published map, the base OTs, the selections)."""
+    return {k: runs.get(k, 0) + selections.get(k, 0) for k in runs.keys() | selections}
 
 
 @contextlib.contextmanager

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import math
 import secrets
 import time
 from pathlib import Path
@@ -61,20 +60,13 @@ from snail_common.net.errors import (
     ProtocolError,
     RemoteError,
 )
-from snail_common.net.linkrates import (
-    AUTO,
-    CLIENT_SCHEMES,
-    Cycle,
-    ahead_depth,
-    deeper,
-    pick_scheme,
-)
-from snail_common.pnp.spec import masked_wires, owner_bits
+from snail_common.net.linkrates import AUTO, CLIENT_SCHEMES
+from snail_common.pnp.spec import owner_bits
 
 from .ahead import AheadPool
 from .audit import Audits, named_signer
-from .links import DEFAULT_LINK_TIMEOUT, Link, ServiceError, labels_and_stats
-from .owner_pads import OwnerRefused, PadCorrections
+from .links import DEFAULT_LINK_TIMEOUT, Link, ServiceError
+from .owner_pads import OwnerInputs, OwnerRefused
 from .replicas import ReplicaSet
 from .retry import blame, retryable
 from .sessions import (
@@ -85,10 +77,12 @@ from .sessions import (
     FixedInputs,
     Invocation,
     Prepared,
+    collect_answers,
     label_slots_to_send,
     parse_address,
     send_fixed_labels,
 )
+from .tuning import RunTuning
 
 DEFAULT_TIMEOUT = 300.0
 DEFAULT_BUSY_WAIT = 30.0  # seconds a run retries servers that answer busy
@@ -119,13 +113,6 @@ class AsyncSecureRunner:
         if scheme not in CLIENT_SCHEMES:
             raise ValueError(f"scheme must be one of {', '.join(CLIENT_SCHEMES)}, "
                              f"got {scheme!r}")
-        # the garbling scheme of every session this runner asks for; auto: per session,
-        # from what the garbler measured (linkrates.pick_scheme)
-        self.scheme = scheme
-        self.measured: dict[str, float] = {}  # the garbler's last rates (its stats)
-        self.cycles: dict[str, Cycle] = {}  # this client's own, per circuit id
-        self.schemes: dict[str, str] = {}  # the scheme of each circuit's last run
-        self._ahead_floor = ahead
         self.last: Invocation | None = None
         self.totals = dict.fromkeys(LINKS, 0)
         self.invocations = 0
@@ -135,8 +122,10 @@ class AsyncSecureRunner:
                                             ("evaluator", self.evaluator_addr))}
         self.ahead = AheadPool(ahead, functools.partial(self._prepare, ahead=True),
                                self._cancel, self._adopt)
-        self.frame: tuple[bytes, str] | None = None  # see use_frame
-        self.pads: PadCorrections | None = None  # the map owner's per-run word
+        # the garbling scheme of every session this runner asks for (auto: per session,
+        # from what the garbler measured) and its garble-ahead depth: tuning.py
+        self.tuning = RunTuning(scheme, self.ahead, ahead)
+        self.owner = OwnerInputs(self.ctx, connect_timeout, timeout)  # owner_pads.py
 
     def use_frame(self, handle: bytes, map_owner: str, relay: str | None = None) -> None:
         """Runs of map-owner circuits from now on take the map owner's inputs of this
@@ -144,10 +133,12 @@ class AsyncSecureRunner:
         the garbler and this device reach it). Sessions garbled ahead serve any frame:
         each takes its frame's pad correction when it runs (owner_pads.py), through the
         evaluator at ``relay`` when given (relay.py)."""
-        self.frame = (handle, map_owner)
-        if self.pads is None or (self.pads.address, self.pads.relay) != (map_owner, relay):
-            self.pads = PadCorrections(map_owner, self.ctx, self.connect_timeout,
-                                       self.timeout, relay)
+        self.owner.use(handle, map_owner, relay)
+
+    @property
+    def scheme(self) -> str:
+        """The scheme this runner asks for (``auto``: chosen per session)."""
+        return self.tuning.scheme
 
     async def _open(self, role: str, addr: tuple[str, int]) -> Link:
         """A link to the ``role`` replica at ``addr``; its certificate must carry the name
@@ -232,16 +223,20 @@ class AsyncSecureRunner:
                              f"for {circuit_id}, got {bits.dtype} {bits.shape}")
         if first:  # one use per invocation, however many attempts it takes
             self.ahead.used(circuit_id)
+        owner_traffic: dict[str, int] = {}  # the pad correction's, map-owner runs only
         try:
+            if session.tables_changed:  # while it was garbled ahead (ahead.take)
+                await collect_answers(session)  # raises the evaluator's word
             if session.owner_bits:
-                bits = await self._corrected(session, bits, frame or self.frame[0])
+                bits, owner_traffic = await self.owner.corrected(
+                    session, bits, frame, functools.partial(collect_answers, session))
             labels = active_input_labels(session.seed, session.delta, bits)
             sent_e = sum(write_labels(session.evaluator.conn, "input_labels", sid,
                                       labels[a:b], a, len(session.todo))
                          for a, b in runs(session.todo))
             self.ahead.fill(circuit_id)  # the next sessions garble while this one evaluates
             await session.evaluator.conn.drain()
-            results = await asyncio.wait_for(self._collect(session), self.timeout)
+            results = await asyncio.wait_for(collect_answers(session), self.timeout)
         except asyncio.TimeoutError:
             self._cancel(session)
             raise ServiceError(f"{circuit_id}: no result within {self.timeout:g} s") \
@@ -272,13 +267,14 @@ class AsyncSecureRunner:
                    "garbler_to_evaluator": int(g_stats["traffic"]["garbler_to_evaluator"]),
                    "evaluator_to_client": e_in, "garbler_to_client": g_in,
                    **{k: int(v) for k, v in g_stats["traffic"].items()
-                      if k in OWNER_LINKS}}
+                      if k in OWNER_LINKS}, **owner_traffic}
         timing = {f"garbler_{k}": v for k, v in g_stats["timing"].items()}
         timing.update({f"evaluator_{k}": v for k, v in e_stats["timing"].items()})
         ahead = int(e_stats["traffic"].get("garbled_ahead", 0))
-        self._measured(g_stats["timing"], session, traffic["garbler_to_evaluator"], wall,
-                       float(e_stats["timing"].get("wait_s", 0.0)) if ahead else 0.0)
-        self._cycled(session, e_stats["timing"], wall)
+        self.tuning.measured_run(g_stats["timing"], session, traffic["garbler_to_evaluator"],
+                                 wall,
+                                 float(e_stats["timing"].get("wait_s", 0.0)) if ahead else 0.0)
+        self.tuning.cycled(session, e_stats["timing"], wall)
         timing["client_ahead"] = float(self.ahead.depth)  # the depth it sized from them
         self.last = Invocation(outputs, traffic, wall + self.audits.audit_s, timing, ahead,
                                sent_e, session.scheme)
@@ -286,58 +282,6 @@ class AsyncSecureRunner:
         for k, v in traffic.items():
             self.totals[k] = self.totals.get(k, 0) + v
         return self.last
-
-    async def _corrected(self, session: Prepared, bits: np.ndarray, frame: bytes
-                         ) -> np.ndarray:
-        """``bits`` with the map owner's pad correction of this session for ``frame``
-        folded into its ``world_masked`` share (owner_pads.py), asked once the garbler
-        has answered for the session: after its OT with the map owner, so the map owner
-        holds its bits; a garbler that refused it (a map owner its operator did not
-        allow, say) is heard first, by its own error."""
-        pads = self.pads
-        pads.precomputed += not session.to_g.empty  # garbled, its OT done, before the run
-        await asyncio.wait_for(session.to_g.answered(), self.timeout)
-        if session.to_g.failed:
-            await self._collect(session)  # raises the garbler's error
-        wires = masked_wires(session.iface)
-        correction = await pads.correction(frame, session.sid, wires.stop - wires.start)
-        out = bits.copy()
-        out[wires] ^= correction  # OwnerRefused: the map owner's word
-        return out
-
-    def _measured(self, report: dict[str, float], session: Prepared, table_bytes: int,
-                  wall: float, waited: float) -> None:
-        """Take the garbler's rates from a session's stats; size the garble-ahead depth
-        from them (its tables at the evaluator before they are asked for), one deeper
-        where the evaluation of a session garbled ahead still ``waited`` for tables."""
-        self.measured.update({k: v for k, v in report.items()
-                              if k.startswith(("and_per_s_", "link_"))})
-        delay = self.measured.get("link_rtt_ms", 0.0) / 2000  # the table stream's link
-        if self._ahead_floor > 0:  # it only grows: one slow invocation (a busy core)
-            # must not take away the depth the next ones need
-            self.ahead.ahead = max(deeper(self.ahead.ahead, waited, delay), self._ahead_floor,
-                                   ahead_depth(self.measured, session.iface.counts["and"],
-                                               session.scheme, table_bytes, wall))
-
-    def _cycled(self, session: Prepared, timing: dict[str, float], wall: float) -> None:
-        """Take this invocation into the client's cycle on its circuit (what ``auto``
-        weighs a scheme's fewer bytes against)."""
-        circuit_id = session.circuit_id
-        self.schemes[circuit_id] = session.scheme
-        if "evaluate_s" in timing:
-            cycle = self.cycles.setdefault(circuit_id, Cycle(session.iface.counts["and"]))
-            cycle.invoked(session.scheme, wall, float(timing["evaluate_s"]),
-                          float(timing.get("wait_s", 0.0)),
-                          float(timing.get("ahead_s", math.inf)))
-
-    def session_scheme(self, circuit_id: str) -> str:
-        """The scheme of the next session of ``circuit_id``: the runner's, or with
-        ``auto`` the one the garbler's last measurements and this client's cycle on the
-        circuit favour."""
-        if self.scheme != AUTO:
-            return self.scheme
-        return pick_scheme(self.measured, self.cycles.get(circuit_id),
-                           self.schemes.get(circuit_id, "halfgates"))
 
     async def _prepare(self, circuit_id: str, fixed: bool = True,
                        ahead: bool = False) -> Prepared:
@@ -373,17 +317,18 @@ class AsyncSecureRunner:
             raise ServiceError(f"{exc}: more than the servers compile (their "
                                f"--max-and-gates)", TOO_LARGE) from None
         n_owner = owner_bits(iface)
-        if n_owner and self.frame is None:
+        if n_owner and self.owner.frame is None:
             raise ServiceError(f"{circuit_id} takes the map owner's input: no frame was "
                                f"selected from a map owner")
-        owner = {"map_owner": self.frame[1]} if n_owner else {}
+        map_owner = self.owner.frame[1] if n_owner else ""
+        owner = {"map_owner": map_owner} if n_owner else {}
         if fixed is not None and fixed.mask.shape != (iface.n_inputs,):
             raise ServiceError(f"{circuit_id}: the fixed inputs cover {fixed.mask.size} "
                                f"wires, the circuit has {iface.n_inputs}")
         todo = label_slots_to_send(iface, fixed)
         sid, seed, key = (secrets.token_bytes(16) for _ in range(3))
         delta = fresh_delta()
-        scheme = self.session_scheme(circuit_id)
+        scheme = self.tuning.next_scheme(circuit_id)
         to_g, to_e = garbler.open(sid), evaluator.open(sid)
         chash = iface.content_hash
         # said either way: a reservation's requests are the size of a live session's
@@ -404,7 +349,7 @@ class AsyncSecureRunner:
             evaluator.cancel(sid)
             raise
         return Prepared(circuit_id, iface, sid, seed, delta, garbler, evaluator, to_g, to_e,
-                        sent_g, sent_e, n_owner, fixed, todo, scheme, key)
+                        sent_g, sent_e, n_owner, map_owner, fixed, todo, scheme, key)
 
     @staticmethod
     def _adopt(session: Prepared, fixed: FixedInputs) -> bool:
@@ -424,23 +369,6 @@ class AsyncSecureRunner:
         session.fixed, session.todo = fixed, todo
         return True
 
-    async def _collect(self, session: Prepared) -> list[tuple[np.ndarray, int, dict]]:
-        """Both servers' label vectors and stats; the first failure cancels the other."""
-        n_out = session.iface.n_outputs
-        tasks = [asyncio.ensure_future(labels_and_stats(session.garbler, session.to_g,
-                                                        "output_zero_labels", n_out)),
-                 asyncio.ensure_future(labels_and_stats(session.evaluator, session.to_e,
-                                                        "output_labels", n_out))]
-        try:
-            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
-            for task in done:
-                if task.exception() is not None:
-                    raise task.exception()
-            return [t.result() for t in tasks]
-        finally:
-            for task in tasks:
-                task.cancel()
-
     @staticmethod
     def _cancel(session: Prepared) -> None:
         """Tell both servers to drop a session this client gave up."""
@@ -459,8 +387,7 @@ class AsyncSecureRunner:
 
     async def close(self) -> None:
         await self.ahead.close()
-        pads = [self.pads.close()] if self.pads is not None else []
-        await asyncio.gather(*(r.close() for r in self.replicas.values()), *pads,
+        await asyncio.gather(*(r.close() for r in self.replicas.values()), self.owner.close(),
                              return_exceptions=True)
 
     async def __aenter__(self) -> AsyncSecureRunner:

@@ -5,6 +5,7 @@ and the links whose bytes are counted."""
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -14,15 +15,18 @@ from snail_common.gc import active_input_labels
 from snail_common.gc.stream import DEFAULT_SCHEME
 from snail_common.net.chunks import runs, write_labels
 from snail_common.net.conn import parse_addr
-from snail_common.net.errors import BUSY, EVICTED
+from snail_common.net.errors import BUSY, EVICTED, PEER_LOST, TABLES_CHANGED
 from snail_common.pnp.spec import masked_wires, owner_bits
 
-from .links import Inbox, Link
+from .links import Inbox, Link, ServiceError, labels_and_stats
 
 LINKS = ("client_to_garbler", "client_to_evaluator", "garbler_to_evaluator",
          "evaluator_to_client", "garbler_to_client")
 OWNER_LINKS = ("garbler_to_mapowner", "mapowner_to_garbler")  # map-owner circuits only
 ROOMLESS = frozenset({BUSY, EVICTED})  # a server's answers to a client that holds too much
+# how long a run whose garbler lost the evaluator waits for the evaluator's own word (it
+# comes at once where the evaluator closed the link on purpose: collect_answers)
+EVALUATOR_GRACE = 2.0
 
 
 @dataclass
@@ -56,6 +60,7 @@ class Prepared:
     sent_g: int
     sent_e: int
     owner_bits: int = 0  # input wires (the last ones) whose labels the map owner gives
+    map_owner: str = ""  # the address of that map owner (its OT ran for this session)
     fixed: FixedInputs | None = None  # input bits whose labels were sent when prepared
     # the client's label slots (two constants, one per input wire but the map owner's)
     # still to send when invoked: those not sent with ``fixed``
@@ -67,6 +72,12 @@ class Prepared:
     def usable(self) -> bool:
         return (self.garbler.alive and self.evaluator.alive
                 and not self.to_g.failed and not self.to_e.failed)
+
+    @property
+    def tables_changed(self) -> bool:
+        """The evaluator failed it because the garbler's tables reached it changed (on
+        the server link, or sent so): a failure the run it was for must report."""
+        return self.to_e.error_code in TABLES_CHANGED
 
     @property
     def refused(self) -> bool:
@@ -133,3 +144,37 @@ def send_fixed_labels(evaluator: Link, sid: bytes, seed: bytes, delta: np.ndarra
     labels = active_input_labels(seed, delta, fixed.bits)
     return sum(write_labels(evaluator.conn, "input_labels", sid, labels[a:b], a, todo.size)
                for a, b in runs(~todo))
+
+
+async def collect_answers(session: Prepared) -> list[tuple[np.ndarray, int, dict]]:
+    """Both servers' label vectors and stats of a run; the first failure cancels the
+    other. A garbler that lost the evaluator only knows the link went: the evaluator's own
+    word, the reason it may have closed it (the tables changed on it), is waited for up
+    to EVALUATOR_GRACE and raised instead when it comes."""
+    n_out = session.iface.n_outputs
+    garbler = asyncio.ensure_future(labels_and_stats(
+        session.garbler, session.to_g, "output_zero_labels", n_out))
+    evaluator = asyncio.ensure_future(labels_and_stats(
+        session.evaluator, session.to_e, "output_labels", n_out))
+    tasks = [garbler, evaluator]
+    try:
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
+        if _lost_evaluator(garbler):
+            await asyncio.wait([evaluator], timeout=EVALUATOR_GRACE)
+            if evaluator.done() and evaluator.exception() is not None:
+                raise evaluator.exception()
+        for task in done:
+            if task.exception() is not None:
+                raise task.exception()
+        return [t.result() for t in tasks]
+    finally:
+        for task in tasks:
+            task.cancel()
+
+
+def _lost_evaluator(garbler: asyncio.Future) -> bool:
+    """Whether the garbler's side of a run failed on its word that it lost the evaluator."""
+    if not garbler.done() or garbler.exception() is None:
+        return False
+    failure = garbler.exception()
+    return isinstance(failure, ServiceError) and failure.code == PEER_LOST

@@ -31,7 +31,8 @@ class _Servers:
 
     async def prepare(self, circuit_id: str, with_fixed: bool) -> SimpleNamespace:
         fixed = self.pool.fixed(circuit_id) if with_fixed else None
-        session = SimpleNamespace(usable=True, refused=False, owner_bits=0, frame=None,
+        session = SimpleNamespace(usable=True, refused=False, tables_changed=False,
+                                  owner_bits=0, frame=None,
                                   fixed=fixed)
         self.prepared.append(session)
         return session

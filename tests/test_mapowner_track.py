@@ -38,7 +38,7 @@ def _track(walk, tmp_path: Path, backend: str, in_flight: int) -> tuple[list, di
             runner = tracker.backend.secure
             counts = {"evaluator": runner.health("evaluator")["sessions"],
                       "depth": runner.async_runner.ahead.ahead,
-                      "used": runner.async_runner.pads.used}
+                      "used": runner.async_runner.owner.used}
     return records, counts
 
 

@@ -141,9 +141,10 @@ def localize(services: Services, relay: str | None) -> Run:
         got = owner.localize_shared(frame, published, masked, OPTIONS,
                                     GarbledBackend(runner))
         holders = device_connections(services)
-        traffic = [link.traffic, runner.async_runner.pads.traffic]
-    return Run((got.rvec, got.tvec, got.cost), holders,
-               sum(v for t in traffic for v in t.values()))
+        corrections = runner.async_runner.totals
+        device_owner = sum(link.traffic.values()) + sum(
+            corrections.get(k, 0) for k in ("client_to_mapowner", "mapowner_to_client"))
+    return Run((got.rvec, got.tvec, got.cost), holders, device_owner)
 
 
 @pytest.fixture(scope="module")
@@ -209,18 +210,25 @@ def test_the_evaluator_carries_only_ciphertext(runs):
     assert not any(name in b"".join(up) or name in b"".join(down) for name in INNER)
 
 
+def relay_refusal(evaluator: str, tls_dir: Path, target: Listener) -> dict:
+    """The evaluator's answer to a relay_open naming ``target``; the connection must be
+    closed after it."""
+    with contextlib.closing(raw(evaluator, tls_dir)) as sock:
+        hello(sock)
+        sock.sendall(encode_bytes(messages.make(
+            "relay_open", map_owner=f"127.0.0.1:{target.port}")))
+        reply = read_msg(sock)
+        assert read_msg(sock) is None  # and the connection is closed
+    return reply
+
+
 def test_a_relay_to_a_map_owner_the_operator_did_not_allow_is_forbidden(services):
     before = len(lines(services.evaluator.log, "relay"))
     target = Listener()
     try:
-        with contextlib.closing(raw(services.evaluator_addr, services.tls_dir)) as sock:
-            hello(sock)
-            sock.sendall(encode_bytes(messages.make(
-                "relay_open", map_owner=f"127.0.0.1:{target.port}")))
-            reply = read_msg(sock)
-            assert reply["t"] == "error" and reply["code"] == errors.FORBIDDEN
-            assert "'map_owner'" in reply["message"] and "--map-owner" in reply["message"]
-            assert read_msg(sock) is None  # and the connection is closed
+        reply = relay_refusal(services.evaluator_addr, services.tls_dir, target)
+        assert reply["t"] == "error" and reply["code"] == errors.FORBIDDEN
+        assert "'map_owner'" in reply["message"] and "--map-owner" in reply["message"]
         link = MapOwnerLink(f"127.0.0.1:{target.port}", services.tls_dir,
                             relay=services.evaluator_addr)
         with link, pytest.raises(ServiceError, match=r"forbidden: the relay at \S+: field "
@@ -306,14 +314,10 @@ def test_no_map_owner_allowed_refuses_every_relay(tmp_path, services):
     bare = start_daemon("evaluator", ["--tls-dir", str(services.tls_dir)],
                         tmp_path / "bare.log")
     try:
-        with contextlib.closing(raw(bare.address, services.tls_dir)) as sock:
-            hello(sock)
-            sock.sendall(encode_bytes(messages.make(
-                "relay_open", map_owner=f"127.0.0.1:{target.port}")))
-            reply = read_msg(sock)
-            assert reply["code"] == errors.FORBIDDEN
-            assert "relays to no map owner" in reply["message"]
-            assert "--map-owner on the evaluator" in reply["message"]
+        reply = relay_refusal(bare.address, services.tls_dir, target)
+        assert reply["code"] == errors.FORBIDDEN
+        assert "relays to no map owner" in reply["message"]
+        assert "--map-owner on the evaluator" in reply["message"]
         assert target.dialled() == 0
     finally:
         bare.stop()

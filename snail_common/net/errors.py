@@ -31,6 +31,8 @@ SHUTDOWN = "shutdown"
 INTERNAL = "internal"
 # a session refused or lost for one of these may succeed on another replica at once
 RETRYABLE = frozenset({BUSY, DRAINING, PEER_LOST, SHUTDOWN, TIMEOUT})
+# the evaluator's codes for tables that reached it changed: the garbler's or the link's doing
+TABLES_CHANGED = frozenset({LINK, DIGEST})
 
 
 class ProtocolError(Exception):
