@@ -14,9 +14,12 @@ until it is done). At each slot's start the oldest frame waiting for one takes i
 none waits, a padding frame does: the last frame's inputs declared again (their labels go
 to the evaluator, as a real frame's do) and K runs on random bits, which the servers
 cannot tell from a frame's. One run may start per tick; a run that is not ready when its
-tick comes starts when it is, and the ticks never bunch. From the first frame to the last
-the servers see the same circuit at the same pace: frame timing and dropped frames are
-hidden too. Before the first frame nothing runs (no circuit is known yet).
+tick comes starts when it is, and the ticks never bunch. A padding slot opens only while
+fewer frames than the tracker's frames in flight are under way (``depth``), real frames
+and padding frames alike: where runs take longer than a tick, padding keeps the pace the
+frames would have, rather than piling runs up until the servers refuse them. From the
+first frame to the last the servers see the same circuit at the same pace: frame timing
+and dropped frames are hidden too. Before the first frame nothing runs (no circuit is known yet).
 """
 
 from __future__ import annotations
@@ -69,15 +72,19 @@ class Gate:
 class Pacer:
     """Runs at ``rate`` per second in slots of ``runs`` (see the module docstring)."""
 
-    def __init__(self, runner: AsyncSecureRunner, rate: float, runs: int) -> None:
+    def __init__(self, runner: AsyncSecureRunner, rate: float, runs: int,
+                 depth: int = 1) -> None:
         if not rate > 0:
             raise ValueError(f"--rate: must be above 0, got {rate}")
         self.runner, self.interval, self.runs = runner, 1.0 / rate, runs
+        self.depth = max(1, depth)  # frames under way at most, for padding to start one
         self.circuit: str | None = None  # the last real run's: what padding runs run
         self.padding_runs = 0
         self.padding_frames = 0
+        self.padding_failed = 0  # padding frames whose runs failed (the stream goes on)
         self._waiting: deque[tuple[asyncio.Future, int | None]] = deque()
         self._ticker: asyncio.Task | None = None
+        self._frames: set[Gate] = set()  # slots given to frames that have not closed them
         self._padding: set[asyncio.Task] = set()
         self._closing = False  # no new slot; the padding frame under way keeps its ticks
 
@@ -109,14 +116,25 @@ class Pacer:
             if not future.done():
                 gate = Gate(limit)
                 future.set_result(gate)
+                self._frames.add(gate)
                 return gate
-        if self.circuit is None:
-            return None
+        if self.circuit is None or self._under_way() >= self.depth:
+            return None  # a tick without a run: the next one looks again
         gate = Gate(self.runs, padding=True)
         task = asyncio.get_running_loop().create_task(self._pad(gate, self.circuit))
         self._padding.add(task)
-        task.add_done_callback(self._padding.discard)
+        task.add_done_callback(self._padded)
         return gate
+
+    def _under_way(self) -> int:
+        """Frames whose slot was given and whose runs are not all done, padding included."""
+        self._frames = {gate for gate in self._frames if not gate.closed}
+        return len(self._frames) + len(self._padding)
+
+    def _padded(self, task: asyncio.Task) -> None:
+        self._padding.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            self.padding_failed += 1  # its run's error was the runner's to retry or report
 
     async def _pad(self, gate: Gate, circuit_id: str) -> None:
         """A padding frame: the last frame's inputs again, and K runs on noise."""
@@ -157,13 +175,13 @@ def _noise(n_inputs: int, fixed: FixedInputs | None) -> np.ndarray:
 class ThreadedRunner:
     """``runner``'s loop in a thread of its own for a ``with`` block, and the blocking
     calls of a garbled backend for any number of threads at once. ``rate``: runs paced
-    in slots of ``runs_per_slot`` (``Pacer``). ``runner`` itself must not be called until
-    the block ends."""
+    in slots of ``runs_per_slot``, ``depth`` frames under way at most (``Pacer``).
+    ``runner`` itself must not be called until the block ends."""
 
     def __init__(self, runner: SecureRunner, rate: float | None = None,
-                 runs_per_slot: int = 1) -> None:
+                 runs_per_slot: int = 1, depth: int = 1) -> None:
         self.blocking, self.loop, self.secure = runner, runner.loop, runner.async_runner
-        self.pacer = Pacer(self.secure, rate, runs_per_slot) if rate else None
+        self.pacer = Pacer(self.secure, rate, runs_per_slot, depth) if rate else None
         # the last runs' figures (what the tracker sizes its frames in flight from);
         # bounded: a stream of an hour makes hundreds of thousands
         self.invocations_seen: deque[Invocation] = deque(maxlen=SEEN_RUNS)

@@ -97,6 +97,7 @@ class Tracker:
         self.in_flight = 1
         self.padding_frames = 0  # frames that made padding runs only (nothing to run)
         self.paced_padding_runs = 0  # --rate: runs in slots no frame took
+        self.paced_padding_failed = 0  # --rate: padding frames whose runs failed
         self._spec: Spec | None = None  # the last circuit run: what padding runs run
         self._threaded: ThreadedRunner | None = None
         self._index = 0  # the next frame's
@@ -118,7 +119,7 @@ class Tracker:
                 yield from self._overlapped(source, pool)
             return
         th = ThreadedRunner(self.backend.secure, self.options.rate,
-                            self.schedule.runs_per_frame)
+                            self.schedule.runs_per_frame, self.frames.max_in_flight)
         try:
             with th, concurrent.futures.ThreadPoolExecutor(self.frames.max_in_flight,
                                                            "snail-frame") as pool:
@@ -137,6 +138,7 @@ class Tracker:
             self._threaded = None
             if th.pacer is not None:  # counted once the pacer stopped: the padding
                 self.paced_padding_runs = th.pacer.padding_runs  # frame it ended included
+                self.paced_padding_failed = th.pacer.padding_failed
 
     def _sequential(self, source: Iterator[Item], pool: concurrent.futures.Executor | None,
                     until_tracking: bool = False) -> Iterator[tuple[dict, Any]]:
@@ -346,6 +348,7 @@ def summary(records: list[dict], wall_s: float, cpu_s: float, tracker: Tracker) 
                                     if r.get("prediction"))),
         "padding_frames": tracker.padding_frames,
         "paced_padding_runs": tracker.paced_padding_runs,
+        "paced_padding_failed": tracker.paced_padding_failed,
         "in_flight": tracker.in_flight, "rate": tracker.options.rate,
         "circuit": schedule.circuit, "wall_s": round(wall_s, 4),
         "client_cpu_s_per_frame": round(cpu_s / len(records), 5) if records else None,
