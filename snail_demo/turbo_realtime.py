@@ -125,6 +125,7 @@ def drive_realtime(localizer: Localizer, start: RobotPose, target: RobotPose, sp
     servo = Servo(target, speed)
     anchor: tuple[RobotPose, RobotPose] | None = None  # (trusted estimate, odometry then)
     began, last_slot = robot.started, -1
+    commanded: float | None = None  # when the last command was given
     cpu = time.process_time()
     for index, pose in enumerate(localizer.track(camera.frames(), motion=camera.motion)):
         now = clock()
@@ -136,7 +137,9 @@ def drive_realtime(localizer: Localizer, start: RobotPose, target: RobotPose, sp
                                "view at the start?")
         at_capture = carried(anchor[0], anchor[1], cap.odometry)
         estimate = carried(anchor[0], anchor[1], robot.odometry_at(now))
-        v, w = servo(estimate)
+        period = now - commanded if commanded is not None else 0.0  # it held that long
+        v, w = servo(estimate, period)
+        commanded = now
         true_now = robot.true_at(robot.command(v, w))
         if index and now - began > max_seconds and not servo.arrived:
             robot.command(0.0, 0.0)  # out of time: stop where it is
@@ -160,7 +163,8 @@ def drive_realtime(localizer: Localizer, start: RobotPose, target: RobotPose, sp
             "client_cpu_s": round(cpu_now - cpu - cap.render_cpu_s, 5),
             "position_error_m": math.hypot(at_capture.x - cap.true.x, at_capture.y - cap.true.y),
             "position_error_now_m": math.hypot(estimate.x - true_now.x, estimate.y - true_now.y),
-            "command": {"speed_mps": v, "turn_deg_s": math.degrees(w)}, "phase": servo.phase,
+            "command": {"speed_mps": v, "turn_deg_s": math.degrees(w), "period_s": period},
+            "phase": servo.phase,
         })
         cpu = cpu_now
         run.true_path.append(cap.true)
