@@ -14,6 +14,7 @@ import pytest
 from snail_client.embedded import embedded_services
 from snail_client.links import ServiceError
 from snail_client.secure import AsyncSecureRunner
+from snail_client.sessions import collect_answers
 from snail_common.circuit import evaluate_bits, registry
 from snail_common.net.errors import DRAINING
 
@@ -42,7 +43,7 @@ def test_sigterm_finishes_the_session_under_way_refuses_new_ones_and_exits_0(rol
                 assert daemon.process.poll() is None, "exited with a session under way"
                 late = await r._prepare(CIRCUIT, fixed=False)  # a new session: refused
                 with pytest.raises(ServiceError) as refused:
-                    await r._collect(late)
+                    await collect_answers(late)
                 first = await r.invoke(CIRCUIT, rows[0])  # the session under way
                 return first.outputs, refused.value
 

@@ -18,6 +18,7 @@ from snail_client.blocking import SecureRunner
 from snail_client.embedded import embedded_services
 from snail_client.links import ServiceError
 from snail_client.secure import AsyncSecureRunner
+from snail_client.sessions import collect_answers
 from snail_common.circuit import registry
 from snail_common.net.tls import make_certs
 
@@ -58,7 +59,7 @@ def test_ctrl_c_ends_a_daemons_sessions_with_an_error(tmp_path, role):
                 await asyncio.sleep(0.5)
                 daemon.process.send_signal(signal.SIGINT)
                 with pytest.raises(ServiceError) as caught:
-                    await r._collect(session)
+                    await collect_answers(session)
                 return str(caught.value)
 
         message = asyncio.run(stalled_session())
