@@ -191,9 +191,10 @@ class Servo:
             self.arrived = self.held >= SETTLE_FRAMES
             return 0.0, 0.0
         if self.phase == "turn":
-            rate = float(np.clip(min(1.0, most / K_TURN) * K_TURN * abs(heading_error),
-                                 CREEP_TURN, self.turn_rate))
-            return 0.0, math.copysign(min(rate, most * abs(heading_error)), heading_error)
+            # the creep floor, too, removes no more than DAMP of the error
+            floor = min(CREEP_TURN, most * abs(heading_error))
+            rate = float(np.clip(min(K_TURN, most) * abs(heading_error), floor, self.turn_rate))
+            return 0.0, math.copysign(rate, heading_error)
         alpha = wrap(math.atan2(dy, dx) - estimate.heading)
         beta = wrap(self.target.heading - math.atan2(dy, dx))
         backwards = abs(alpha) > math.pi / 2
@@ -205,7 +206,6 @@ class Servo:
         # ...by Astolfi's gains scaled alike (its stability condition holds) and no more
         # than DAMP of the way
         scale = min(1.0, most / K_ALPHA)
-        v = float(np.clip(scale * K_RHO * rho, min(CREEP, self.speed), self.speed))
-        v = min(v, most * rho)
+        v = float(np.clip(scale * K_RHO * rho, min(CREEP, self.speed, most * rho), self.speed))
         w = float(np.clip(scale * (K_ALPHA * alpha + K_BETA * beta), -turn_rate, turn_rate))
         return (-v if backwards else v), w

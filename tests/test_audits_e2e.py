@@ -30,6 +30,7 @@ from snail_client.embedded import Daemon, embedded_services, start_daemon
 from snail_client.evidence import Unproven, verify
 from snail_client.localize import GarbledBackend, Options, localize
 from snail_client.mapowner import MapOwnerLink
+from snail_client.secure import DEFAULT_AHEAD
 from snail_common.circuit import registry
 from snail_common.loc import owner
 from snail_common.loc.backends import CircuitBackend
@@ -63,9 +64,10 @@ def cheating(cache: Path, failpoints: str) -> Iterator:
         yield svc
 
 
-def localize_with(svc, rate: float, evidence: Path | None = None, **kw) -> dict:
+def localize_with(svc, rate: float, evidence: Path | None = None, ahead: int = DEFAULT_AHEAD,
+                  **kw) -> dict:
     with SecureRunner(svc.garbler_addr, svc.evaluator_addr, svc.tls_dir, audit_rate=rate,
-                      evidence_dir=evidence) as runner:
+                      evidence_dir=evidence, ahead=ahead) as runner:
         return localize(load_problem(PROBLEM), Options(audit_rate=rate, **kw),
                         GarbledBackend(runner))
 
@@ -113,9 +115,13 @@ def test_a_swapped_zero_label_is_a_silent_wrong_pose_without_audits(cache, hones
 @pytest.mark.parametrize("failpoint", ["garbler.table_bit", "evaluator.output_label",
                                        "evaluator.digest"])
 def test_a_cheat_that_spoils_a_label_or_signature_is_named_at_audit_rate_0(cache, failpoint):
+    # run:3 counts the garbler's sessions in the order it garbles them, the evaluator's in
+    # the order it evaluates them. Sessions garbled ahead are prepared side by side and
+    # may serve runs in another order (a fresh clone's run named run 1 for the garbler's
+    # third session): with none garbled ahead, the garbler's third session is run 2
     with cheating(cache, f"{failpoint}=run:3") as svc, \
             pytest.raises(IntegrityFailure) as info:
-        localize_with(svc, 0.0)
+        localize_with(svc, 0.0, ahead=0)
     assert info.value.party == PARTIES[failpoint] and info.value.run == 2
     assert info.value.audits["audited"] == (0 if failpoint == "evaluator.digest" else 1)
 
